@@ -1,0 +1,414 @@
+"""Tests of ene.py, the Extremely Noisy Environment (spec: ALGORITHMS.md section 1)."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+import ene  # noqa: E402
+
+EPISODE = 20
+
+
+def _rollout(env, seed, n_steps, actions=None):
+    """Reset with `seed` and step `n_steps` times; returns the observations (n_steps + 1, D) and the actions used."""
+    obs, _ = env.reset(seed=seed)
+    observations = [obs]
+    if actions is None:
+        rng = np.random.default_rng(1234)
+        actions = rng.uniform(-1.0, 1.0, (n_steps, *env.action_space.shape))
+    for a in actions[:n_steps]:
+        obs, _, _, _, _ = env.step(a)
+        observations.append(obs)
+    return np.stack(observations), actions
+
+
+# ---------------------------------------------------------------- 1. dimensions
+
+
+@pytest.mark.parametrize(
+    "d_obs, noise, total", [(5, 0.9, 51), (24, 0.9, 241), (17, 0.9, 171), (78, 0.7, 260), (67, 0.7, 224)]
+)
+def test_dimension_table(d_obs, noise, total):
+    assert ene.total_obs_dim(d_obs, noise) == total
+    assert ene.num_noise_features(d_obs, noise) == total - d_obs
+    assert ene.num_noise_features(d_obs, 0.0) == 0
+    assert ene.total_obs_dim(d_obs, 0.0) == d_obs
+
+
+@pytest.mark.parametrize("env_id, d_real, total", [("cartpole-swingup", 5, 51), ("cheetah-run", 17, 171)])
+def test_make_env_shapes(env_id, d_real, total):
+    env = ene.make_env(env_id, seed=0, noise=0.9, episode_length=EPISODE)
+    assert env.obs_dim_real == d_real
+    assert env.n_noise == total - d_real
+    assert env.observation_space.shape == (total,)
+    assert env.observation_space.dtype == np.float32
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (total,) and obs.dtype == np.float32
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs.shape == (total,) and obs.dtype == np.float32
+    assert env.noise_sampler.obs_dim_real == d_real and env.noise_sampler.n_noise == total - d_real
+    env.close()
+
+
+# ---------------------------------------------------------------- 2. fresh noise, real columns untouched
+
+
+def test_noise_fresh_each_step_and_reset_and_real_columns_are_dmc():
+    seed, n = 3, 10
+    noisy = ene.make_env("cheetah-run", seed=seed, noise=0.9, episode_length=EPISODE)
+    clean = ene.make_env("cheetah-run", seed=seed, noise=0.0, episode_length=EPISODE)
+    d = noisy.obs_dim_real
+    assert clean.obs_dim_real == d and clean.n_noise == 0 and clean.observation_space.shape == (d,)
+
+    obs_noisy, actions = _rollout(noisy, seed, n)
+    obs_clean, _ = _rollout(clean, seed, n, actions)
+    assert obs_clean.shape == (n + 1, d)
+    assert obs_noisy.shape == (n + 1, 171)
+    # the real columns are exactly dm_control's features (the same as without noise)
+    np.testing.assert_array_equal(obs_noisy[:, :d], obs_clean)
+    # ... and they do change (the task is actually being stepped)
+    assert not np.allclose(obs_clean[0], obs_clean[-1])
+
+    noise = obs_noisy[:, d:]
+    assert np.all(np.isfinite(noise))
+    # fresh noise at every step: every pair of consecutive steps differs in (almost) every noise column
+    for t in range(n):
+        assert np.mean(noise[t] != noise[t + 1]) > 0.99
+
+    # fresh noise at each reset, even with the same task seed
+    first, _ = noisy.reset(seed=seed)
+    second, _ = noisy.reset(seed=seed)
+    np.testing.assert_array_equal(first[:d], second[:d])
+    assert np.mean(first[d:] != second[d:]) > 0.99
+    noisy.close()
+    clean.close()
+
+
+# ---------------------------------------------------------------- 3. seeding
+
+
+def test_seeding_reproducible_and_seed_dependent():
+    n = 8
+    a = ene.make_env("cartpole-swingup", seed=7, noise=0.9, episode_length=EPISODE)
+    b = ene.make_env("cartpole-swingup", seed=7, noise=0.9, episode_length=EPISODE)
+    c = ene.make_env("cartpole-swingup", seed=8, noise=0.9, episode_length=EPISODE)
+    obs_a, actions = _rollout(a, 7, n)
+    obs_b, _ = _rollout(b, 7, n, actions)
+    obs_c, _ = _rollout(c, 8, n, actions)
+    np.testing.assert_array_equal(obs_a, obs_b)  # noise included
+    d = a.obs_dim_real
+    assert np.mean(obs_a[:, d:] != obs_c[:, d:]) > 0.99
+    # the action space is seeded too
+    assert np.array_equal(a.action_space.sample(), b.action_space.sample())
+    for env in (a, b, c):
+        env.close()
+
+
+# ---------------------------------------------------------------- 4. Gaussian statistics
+
+
+def test_gaussian_noise_statistics():
+    sampler = ene.NoiseSampler(5, 46, "gaussian")
+    x = sampler.sample(np.random.default_rng(0), (200,))
+    assert x.shape == (200, 46) and x.dtype == np.float32
+    single = sampler.sample(np.random.default_rng(0))
+    assert single.shape == (46,) and single.dtype == np.float32
+    torch.manual_seed(0)
+    y = sampler.sample_torch((200,), torch.device("cpu"))
+    assert y.shape == (200, 46) and y.dtype == torch.float32
+    y = y.numpy()
+    for values in (x, y):  # 9200 samples: the standard error of the mean is ~0.01, of the std ~0.007
+        assert abs(values.mean()) < 0.05
+        assert abs(values.std() - 1.0) < 0.05
+        # per-feature sanity: every column is standard normal too (200 samples each, generous bounds)
+        assert np.all(np.abs(values.mean(0)) < 0.35)
+        assert np.all(np.abs(values.std(0) - 1.0) < 0.3)
+    # two draws differ
+    assert not np.array_equal(x, sampler.sample(np.random.default_rng(1), (200,)))
+
+
+# ---------------------------------------------------------------- 5. imitated noise
+
+
+def _synthetic_observations(n=20000, seed=0):
+    rng = np.random.default_rng(seed)
+    bimodal = np.where(rng.random(n) < 0.3, rng.normal(-5.0, 0.3, n), rng.normal(4.0, 0.5, n))
+    return np.stack(
+        [
+            rng.uniform(2.0, 3.0, n),  # 0: uniform on [2, 3]
+            bimodal,  # 1: two modes, an empty gap between them
+            rng.exponential(0.5, n) + 10.0,  # 2: exponential, shifted
+            np.full(n, -7.0),  # 3: constant
+        ],
+        axis=1,
+    )
+
+
+def test_imitated_noise(tmp_path):
+    obs = _synthetic_observations()
+    d = obs.shape[1]
+    path = str(tmp_path / "hist.npz")
+    built = ene.build_histograms(obs, path)
+    with np.load(path) as data:
+        assert data["bin_edges"].shape == (d, 101)
+        assert data["probs"].shape == (d, 100)
+    hist = ene.load_histograms(path)
+    np.testing.assert_allclose(hist["bin_edges"], built["bin_edges"])
+    np.testing.assert_allclose(hist["probs"], built["probs"])
+    np.testing.assert_allclose(hist["probs"].sum(1), 1.0)
+    for i in range(d):
+        assert hist["bin_edges"][i, 0] <= obs[:, i].min() and hist["bin_edges"][i, -1] >= obs[:, i].max()
+    # edges span [min, max] for non-constant features
+    np.testing.assert_allclose(hist["bin_edges"][:3, 0], obs[:, :3].min(0))
+    np.testing.assert_allclose(hist["bin_edges"][:3, -1], obs[:, :3].max(0))
+
+    n_noise = 10  # noise feature i imitates real feature i % 4
+    sampler = ene.NoiseSampler(d, n_noise, "imitate", hist)
+    n = 20000
+    x_np = sampler.sample(np.random.default_rng(0), (n // 100, 100))
+    assert x_np.shape == (n // 100, 100, n_noise) and x_np.dtype == np.float32
+    x_np = x_np.reshape(n, n_noise)
+    torch.manual_seed(0)
+    x_t = sampler.sample_torch((n,), torch.device("cpu"))
+    assert x_t.shape == (n, n_noise) and x_t.dtype == torch.float32
+    x_t = x_t.numpy()
+    single = sampler.sample(np.random.default_rng(1))
+    assert single.shape == (n_noise,)
+
+    for samples in (x_np, x_t):
+        for i in range(n_noise):
+            src = i % d
+            edges, probs = hist["bin_edges"][src], hist["probs"][src]
+            col = samples[:, i].astype(np.float64)
+            lo, hi = obs[:, src].min(), obs[:, src].max()
+            tol = 1e-5 * max(1.0, abs(lo), abs(hi))  # float32 rounding of the samples
+            assert col.min() >= lo - tol and col.max() <= hi + tol, (i, col.min(), col.max(), lo, hi)
+            if src == 3:  # constant feature
+                np.testing.assert_allclose(col, -7.0, atol=1e-5)
+                continue
+            # bin frequencies of the samples match probs (std of a bin frequency <= sqrt(0.25 / n) ~ 0.0035)
+            idx = np.clip(np.searchsorted(edges, col, side="right") - 1, 0, len(probs) - 1)
+            freq = np.bincount(idx, minlength=len(probs)) / len(col)
+            assert np.max(np.abs(freq - probs)) < 0.015, (i, np.max(np.abs(freq - probs)))
+            # within a bin the value is uniform: its relative position in the bin has mean 1/2 and std 1/sqrt(12)
+            width = edges[idx + 1] - edges[idx]
+            position = np.clip((col - edges[idx]) / width, 0.0, 1.0)
+            assert abs(position.mean() - 0.5) < 0.02 and abs(position.std() - 12 ** -0.5) < 0.02
+            assert len(np.unique(col)) > 0.9 * len(col)
+            # empty bins (the bimodal gap) get no samples, except float32 rounding at a bin boundary
+            assert freq[probs == 0].sum() < 1e-3
+            # and the marginal moments match the real feature
+            assert abs(col.mean() - obs[:, src].mean()) < 0.05 * obs[:, src].std() + 1e-6
+            assert abs(col.std() - obs[:, src].std()) < 0.05 * obs[:, src].std()
+
+    # noise features with the same source feature are independent draws, not copies
+    assert not np.array_equal(x_np[:, 0], x_np[:, 4])
+    # the numpy sampler is reproducible from its generator
+    np.testing.assert_array_equal(
+        sampler.sample(np.random.default_rng(5), (50,)), sampler.sample(np.random.default_rng(5), (50,))
+    )
+
+
+def test_imitate_make_env(tmp_path):
+    """make_env with --noise-type imitate: noise columns stay in the range of their source feature."""
+    env = ene.make_env("cartpole-swingup", seed=0, noise=0.0, episode_length=EPISODE)
+    obs, _ = _rollout(env, 0, EPISODE)
+    env.close()
+    obs = np.concatenate([obs, obs + 0.01])  # two rows are enough, but use a few more
+    path = str(tmp_path / "cartpole.npz")
+    ene.build_histograms(obs, path)
+    env = ene.make_env("cartpole-swingup", seed=0, noise=0.9, noise_type="imitate", noise_histograms=path,
+                       episode_length=EPISODE)
+    assert env.observation_space.shape == (51,)
+    noisy, _ = _rollout(env, 0, 10)
+    d = env.obs_dim_real
+    lo, hi = obs.min(0), obs.max(0)
+    for i in range(env.n_noise):
+        col = noisy[:, d + i]
+        assert np.all(col >= lo[i % d] - 1e-5) and np.all(col <= hi[i % d] + 1e-5)
+    env.close()
+
+
+# ---------------------------------------------------------------- 6. refresh_
+
+
+@pytest.mark.parametrize("noise_type", ["gaussian", "imitate"])
+def test_refresh_only_changes_noise_columns(noise_type):
+    d, n_noise, n_extra = 5, 46, 3
+    hist = ene.build_histograms(_synthetic_observations(2000)[:, [0, 1, 2, 0, 1]]) if noise_type == "imitate" else None
+    sampler = ene.NoiseSampler(d, n_noise, noise_type, hist)
+    torch.manual_seed(0)
+    x = torch.full((4, 6, d + n_noise + n_extra), 123.0)  # a batch of segments of [obs | action] rows
+    x[..., :d] = torch.arange(d, dtype=torch.float32)
+    x[..., d + n_noise :] = -torch.arange(1, n_extra + 1, dtype=torch.float32)
+    before = x.clone()
+    out = sampler.refresh_(x)
+    assert out is x  # in place
+    assert torch.equal(x[..., :d], before[..., :d])
+    assert torch.equal(x[..., d + n_noise :], before[..., d + n_noise :])
+    first = x[..., d : d + n_noise].clone()
+    assert torch.all(first != 123.0)
+    sampler.refresh_(x)
+    second = x[..., d : d + n_noise]
+    assert torch.equal(x[..., :d], before[..., :d])
+    assert torch.equal(x[..., d + n_noise :], before[..., d + n_noise :])
+    assert (first != second).float().mean() > 0.99
+    # different rows get different noise
+    assert (second[0, 0] != second[1, 1]).float().mean() > 0.99
+    if noise_type == "gaussian":
+        assert abs(second.mean().item()) < 0.2 and abs(second.std().item() - 1.0) < 0.2
+
+    # no noise features: refresh_ is a no-op
+    empty = ene.NoiseSampler(d, 0, "gaussian")
+    y = torch.randn(3, d + n_extra)
+    y0 = y.clone()
+    empty.refresh_(y)
+    assert torch.equal(y, y0)
+
+
+# ---------------------------------------------------------------- 7. bad inputs
+
+
+def _assert_one_line_value_error(fn, flag):
+    with pytest.raises(ValueError) as info:
+        fn()
+    message = str(info.value)
+    assert flag in message, message
+    assert "\n" not in message, message
+    return message
+
+
+@pytest.mark.parametrize("noise", [1.0, -0.1, 1.5, float("nan")])
+def test_bad_noise(noise):
+    _assert_one_line_value_error(lambda: ene.check_env_args("cheetah-run", noise), "--noise")
+    _assert_one_line_value_error(lambda: ene.make_env("cheetah-run", 0, noise=noise), "--noise")
+
+
+@pytest.mark.parametrize("env_id", ["cheetah-fly", "foo", "cheetah_run", ""])
+def test_bad_env_id(env_id):
+    _assert_one_line_value_error(lambda: ene.check_env_args(env_id, 0.9), "--env-id")
+    _assert_one_line_value_error(lambda: ene.make_env(env_id, 0, noise=0.9), "--env-id")
+
+
+def test_good_args_pass():
+    assert ene.check_env_args("cheetah-run", 0.0) is None
+    assert ene.check_env_args("humanoid-stand", 0.7, "gaussian") is None
+    assert "quadruped-walk" in ene.dmc_tasks() and "cartpole-swingup" in ene.dmc_tasks()
+
+
+def test_bad_noise_type_and_missing_histograms(tmp_path):
+    _assert_one_line_value_error(lambda: ene.check_env_args("cheetah-run", 0.9, "uniform"), "--noise-type")
+    _assert_one_line_value_error(lambda: ene.check_env_args("cheetah-run", 0.9, "imitate"), "--noise-histograms")
+    _assert_one_line_value_error(lambda: ene.make_env("cheetah-run", 0, 0.9, "imitate"), "--noise-histograms")
+    missing = str(tmp_path / "nope.npz")
+    _assert_one_line_value_error(lambda: ene.check_env_args("cheetah-run", 0.9, "imitate", missing), "--noise-histograms")
+    _assert_one_line_value_error(lambda: ene.make_env("cheetah-run", 0, 0.9, "imitate", missing), "--noise-histograms")
+    _assert_one_line_value_error(lambda: ene.load_histograms(str(tmp_path)), "--noise-histograms")  # a directory
+
+
+def _bad_histogram_files(tmp_path):
+    good = ene.build_histograms(_synthetic_observations(500)[:, :3])
+    files = {}
+    text = tmp_path / "text.npz"
+    text.write_text("this is not a histogram\n1 2 3\n")
+    files["text"] = text
+    np.savez(tmp_path / "wrong_shapes.npz", bin_edges=np.zeros((3, 100)), probs=np.full((3, 100), 0.01))
+    files["wrong_shapes"] = tmp_path / "wrong_shapes.npz"
+    np.savez(tmp_path / "probs_1d.npz", bin_edges=good["bin_edges"], probs=good["probs"][0])
+    files["probs_1d"] = tmp_path / "probs_1d.npz"
+    np.savez(tmp_path / "not_one.npz", bin_edges=good["bin_edges"], probs=good["probs"] * 0.5)
+    files["not_one"] = tmp_path / "not_one.npz"
+    negative = good["probs"].copy()
+    negative[:, 0] -= 0.1
+    negative[:, 1] += 0.1
+    np.savez(tmp_path / "negative.npz", bin_edges=good["bin_edges"], probs=negative)
+    files["negative"] = tmp_path / "negative.npz"
+    np.savez(tmp_path / "missing_key.npz", bin_edges=good["bin_edges"], p=good["probs"])
+    files["missing_key"] = tmp_path / "missing_key.npz"
+    np.savez(tmp_path / "decreasing.npz", bin_edges=good["bin_edges"][:, ::-1], probs=good["probs"])
+    files["decreasing"] = tmp_path / "decreasing.npz"
+    nan_edges = good["bin_edges"].copy()
+    nan_edges[1, 5] = np.nan
+    np.savez(tmp_path / "nan_edges.npz", bin_edges=nan_edges, probs=good["probs"])
+    files["nan_edges"] = tmp_path / "nan_edges.npz"
+    np.save(tmp_path / "plain.npy", good["probs"])
+    files["plain_npy"] = tmp_path / "plain.npy"
+    return files
+
+
+def test_malformed_histogram_files(tmp_path):
+    for name, path in _bad_histogram_files(tmp_path).items():
+        path = str(path)
+        msg = _assert_one_line_value_error(lambda: ene.load_histograms(path), "--noise-histograms")
+        assert path in msg, (name, msg)
+        _assert_one_line_value_error(lambda: ene.check_env_args("cartpole-swingup", 0.9, "imitate", path),
+                                     "--noise-histograms")
+    # one through make_env as well
+    path = str(tmp_path / "not_one.npz")
+    _assert_one_line_value_error(lambda: ene.make_env("cartpole-swingup", 0, 0.9, "imitate", path), "--noise-histograms")
+
+
+def test_histograms_with_wrong_number_of_features(tmp_path):
+    path = str(tmp_path / "three.npz")
+    hist = ene.build_histograms(_synthetic_observations(500)[:, :3], path)
+    _assert_one_line_value_error(lambda: ene.NoiseSampler(5, 46, "imitate", hist), "--noise-histograms")
+    _assert_one_line_value_error(
+        lambda: ene.make_env("cartpole-swingup", 0, 0.9, "imitate", path, episode_length=EPISODE), "--noise-histograms"
+    )
+
+
+def test_bad_episode_length():
+    _assert_one_line_value_error(lambda: ene.make_env("cartpole-swingup", 0, 0.9, episode_length=0), "--episode-length")
+
+
+def test_build_histograms_rejects_bad_input():
+    with pytest.raises(ValueError):
+        ene.build_histograms(np.zeros((1, 3)))
+    with pytest.raises(ValueError):
+        ene.build_histograms(np.zeros(10))
+
+
+# ---------------------------------------------------------------- 8. episodes and actions
+
+
+@pytest.mark.parametrize("env_id, noise", [("cartpole-swingup", 0.9), ("quadruped-walk", 0.7)])
+def test_episode_length_and_action_space(env_id, noise):
+    length = 30
+    env = ene.make_env(env_id, seed=0, noise=noise, episode_length=length)
+    space = env.action_space
+    assert np.all(space.low == -1.0) and np.all(space.high == 1.0)
+    for _ in range(2):  # two episodes in a row
+        env.reset(seed=0)
+        for t in range(1, length + 1):
+            _, reward, terminated, truncated, _ = env.step(space.sample())
+            assert np.isfinite(reward)
+            assert not terminated, t
+            assert bool(truncated) == (t == length), t
+    env.close()
+
+
+def test_quadruped_actions_are_rescaled():
+    env = ene.make_env("quadruped-walk", seed=0, noise=0.7, episode_length=EPISODE)
+    native = env.unwrapped.action_space
+    assert not (np.all(native.low == -1.0) and np.all(native.high == 1.0))  # the reason for the rescale
+    assert env.observation_space.shape == (260,) and env.obs_dim_real == 78
+    # -1 and +1 reach the native bounds
+    captured = []
+    original_step = env.unwrapped.step
+
+    def spy(action):
+        captured.append(np.array(action, dtype=np.float64))
+        return original_step(action)
+
+    env.unwrapped.step = spy
+    env.reset(seed=0)
+    env.step(-np.ones(env.action_space.shape))
+    env.step(np.ones(env.action_space.shape))
+    env.unwrapped.step = original_step
+    np.testing.assert_allclose(captured[0], native.low, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(captured[1], native.high, rtol=1e-6, atol=1e-6)
+    env.close()
