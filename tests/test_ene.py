@@ -124,6 +124,9 @@ def test_gaussian_noise_statistics():
     for values in (x, y):  # 9200 samples: the standard error of the mean is ~0.01, of the std ~0.007
         assert abs(values.mean()) < 0.05
         assert abs(values.std() - 1.0) < 0.05
+        # Gaussian shape, not just the first two moments: P(|x| < 1) = 0.683, P(|x| > 2) = 0.0455
+        assert abs(np.mean(np.abs(values) < 1.0) - 0.6827) < 0.02
+        assert abs(np.mean(np.abs(values) > 2.0) - 0.0455) < 0.012
         # per-feature sanity: every column is standard normal too (200 samples each, generous bounds)
         assert np.all(np.abs(values.mean(0)) < 0.35)
         assert np.all(np.abs(values.std(0) - 1.0) < 0.3)
