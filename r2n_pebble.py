@@ -820,7 +820,9 @@ if __name__ == "__main__":
             if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
                 data = rb.sample(args.batch_size)
                 points = read_noisy(rb.obs[: rb.size], noise)
-                sac_update(data._replace(rewards=state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)))
+                intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
+                sac_update(data._replace(rewards=intrinsic_reward))
+                losses["state_entropy_reward"] = intrinsic_reward.mean()
             elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
                 feedback_round("uniform")
                 qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
