@@ -205,6 +205,11 @@ def validate_args(args: Args) -> None:
             f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
             f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps}"
         )
+    if args.learning_starts + args.unsup_steps < args.episode_length:
+        raise ValueError(
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must cover one episode "
+            f"(--episode-length {args.episode_length}): the first feedback round cuts segments from complete episodes"
+        )
     if args.buffer_size < args.batch_size:
         raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
     if not 0.0 < args.teacher_gamma <= 1.0:
