@@ -1,4 +1,4 @@
-# docs and experiment results can be found at README.md#pebblepy
+# docs and experiment results can be found in README.md, in the section named after this file
 """PEBBLE: preference-based RL with unsupervised pre-training and relabelling, in an Extremely Noisy Environment.
 
 Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
@@ -21,6 +21,8 @@ as ANF does; the teacher is B-Pref's with its thresholds applied as written (the
 first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
 accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
 the current reward ensemble and is overwritten by the next relabel.
+
+Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
 """
 import math
 import os

@@ -1,15 +1,5 @@
-# docs and experiment results can be found at README.md#r2n_pebblepy
-"""R2N-PEBBLE: PEBBLE whose reward models, actor and critics learn sparse input layers with RigL (R2N).
-
-R2N (Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic Sparsity", AAMAS 2025) keeps 20% of
-the weights of each input layer (reward members, actor, Q1, Q2; independent masks) and periodically drops the
-smallest-magnitude active weights and grows as many where the dense gradient is largest (RigL), so the networks move
-their connections onto the task-relevant features. Reward members: sparsity 0.8, drop 0.2 every 100 reward
-optimiser steps (counted over the whole run); actor and critics: 0.8, 0.05 every 1000 SAC steps (the reset critic
-gets a fresh mask and count). Masked weights are exactly 0; their gradients and Adam moments are kept at 0, grown
-weights start at 0 with zero moments. Target critics are dense Polyak copies. `diff pebble.py r2n_pebble.py` is R2N.
-
-The rest is PEBBLE:
+# docs and experiment results can be found in README.md, in the section named after this file
+"""PEBBLE: preference-based RL with unsupervised pre-training and relabelling, in an Extremely Noisy Environment.
 
 Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
 Unsupervised Pre-training" (ICML 2021), as used by the R2N paper (Muslimani et al., AAMAS 2025), with the paper's
@@ -31,7 +21,17 @@ as ANF does; the teacher is B-Pref's with its thresholds applied as written (the
 first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
 accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
 the current reward ensemble and is overwritten by the next relabel.
+
+Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
 """
+# R2N PATCH: R2N (Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic Sparsity", AAMAS 2025).
+# The same patch turns pebble.py, surf.py, rune.py into r2n_pebble.py, r2n_surf.py, r2n_rune.py: `diff` shows it.
+# It keeps 20% of the weights of each input layer (reward members, actor, Q1, Q2; independent random masks) and
+# periodically drops the smallest-magnitude active weights and grows as many where the dense gradient is largest
+# (RigL), so the networks move their connections onto the task-relevant features. Reward members: sparsity 0.8,
+# drop 0.2 every 100 reward optimiser steps (counted over the whole run); actor and critics: 0.8, 0.05 every 1000
+# SAC optimiser steps (the reset critic gets a fresh mask and count). Masked weights are exactly 0; their gradients
+# and Adam moments are kept at 0; grown weights start at 0 with zero moments. Target critics are dense Polyak copies.
 import math
 import os
 import random
