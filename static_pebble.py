@@ -26,8 +26,8 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 """
 # R2N PATCH: R2N (Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic Sparsity", AAMAS 2025).
 # The same patch turns pebble.py, surf.py, rune.py into r2n_pebble.py, r2n_surf.py, r2n_rune.py: `diff` shows it.
-# Static-PEBBLE: the R2N patch without topology updates (`diff r2n_pebble.py static_pebble.py`): each input layer
-# (reward members, actor, Q1, Q2) keeps the same random 20% of its weights for the whole run (sparsity 0.8). Masked
+# It keeps 20% of the weights of each input layer (reward members, actor, Q1, Q2; independent random masks) and
+# never changes them: static sparse training, no topology update (`diff r2n_pebble.py static_pebble.py`). Masked
 # weights are exactly 0; their gradients and Adam moments are kept at 0. Target critics are dense Polyak copies.
 import math
 import os

@@ -1,0 +1,832 @@
+# docs and experiment results can be found in README.md, in the section named after this file
+"""SURF on PEBBLE: semi-supervised reward learning with temporal cropping, in an Extremely Noisy Environment.
+
+Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
+Unsupervised Pre-training" (ICML 2021), as used by the R2N paper (Muslimani et al., AAMAS 2025), with the paper's
+appendix defaults, plus SURF's reward learning (last paragraphs). The loop, one iteration per env
+step:
+
+1. `global_step < learning_starts`: uniform random actions, no learning.
+2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std). It is computed on
+   the full observation, noise included, as the paper's PEBBLE does.
+3. at `learning_starts + unsup_steps`: first feedback round (uniform sampling), relabel, reset the critic, then
+   `reset_updates` SAC updates.
+4. every `feedback_freq` steps while budget is left: a feedback round (sample queries, simulated teacher, store
+   unlabelled pairs, train the reward ensemble on all pairs so far, relabel the *whole* replay buffer); one SAC update
+   per step on the learned reward.
+Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
+
+SURF (Park, Seo, Shin, Lee, Abbeel & Lee, "SURF: Semi-supervised Reward Learning with Data Augmentation for
+Feedback-efficient Preference-based Reinforcement Learning", ICLR 2022) changes reward learning, and
+`diff pebble.py surf.py` is SURF. Segments are stored with `surf_crop` extra steps on each side (60 = 50 + 2 * 5) and the
+teacher labels their central `segment_size` steps; each round also stores `surf_unlabeled_ratio` x queries unlabelled
+pairs (uniform sampling, no teacher, no budget). A reward step, per member: the Bradley-Terry loss on temporally
+cropped labelled pairs (one crop length per pair in segment_size +- surf_crop, independent start offsets for the two
+segments in the stored window) plus `surf_lambda` x the loss on `surf_mu * reward_batch_size` cropped unlabelled pairs
+whose pseudo-label is the member's own preference on the uncropped central steps, kept where its probability is at
+least `surf_tau`, averaged over the whole unlabelled minibatch (FixMatch style). A round trains
+ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau 0.99 and mu 1 (the reference's
+README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
+
+Choices where the paper is silent (see ALGORITHMS.md): `--noise-resample` redraws the noise columns of stored
+observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
+as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
+first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
+the training accuracy counts only strict (non-equal) labels; the stored reward of a new transition comes from
+the current reward ensemble and is overwritten by the next relabel. SURF: disagreement and entropy sampling score the
+central steps, and the teacher's skip and equal thresholds use central sums (the reference scores all stored steps,
+and its skip branch sums them); the pseudo-label comes from the same forward pass as the cropped returns (rewards are
+per step, so its central sum is the member's return on the central steps), with the same redrawn noise; the
+unlabelled pool keeps every round's pairs (max_feedback x ratio at most); the logged loss and accuracy are the labelled
+ones over the last pass over the labels, the pseudo-label rate is over the whole round.
+
+Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
+"""
+import math
+import os
+import random
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import torch.optim as optim
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+
+import ene
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (run folder and checkpoint name)"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be used when available"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "r2n"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    save_model: bool = True
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    threads: Optional[int] = None
+    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    log_freq: int = 1000
+    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+
+    # Environment arguments
+    env_id: str = "cheetah-run"
+    """the dm_control task, as domain-task"""
+    noise: float = 0.9
+    """fraction of all observation features that are noise, in [0, 1)"""
+    noise_type: Literal["gaussian", "imitate"] = "gaussian"
+    """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
+    noise_resample: bool = True
+    """redraw the noise columns of stored observations whenever they are read back (ANF's semantics)"""
+    noise_histograms: Optional[str] = None
+    """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
+    episode_length: int = 1000
+    """environment steps per episode (episodes are truncated, never terminated)"""
+
+    # Algorithm specific arguments
+    total_timesteps: int = 1_000_000
+    """total environment steps"""
+    buffer_size: int = 1_000_000
+    """the replay memory buffer size"""
+    gamma: float = 0.99
+    """the discount factor gamma"""
+    tau: float = 0.005
+    """target smoothing coefficient"""
+    batch_size: int = 1024
+    """the batch size of SAC updates"""
+    hidden_dim: int = 1024
+    """width of the two hidden layers of actor and critics"""
+    learning_starts: int = 1000
+    """steps of uniform random actions before learning starts"""
+    policy_lr: float = 1e-4
+    """the learning rate of the policy network optimizer"""
+    q_lr: float = 1e-4
+    """the learning rate of the Q network optimizer"""
+    alpha_lr: float = 1e-4
+    """the learning rate of the temperature"""
+    init_temperature: float = 0.1
+    """initial entropy temperature alpha (learned, target entropy -|A|)"""
+    actor_update_freq: int = 1
+    """actor and temperature update every this many SAC updates"""
+    target_update_freq: int = 2
+    """target critics update every this many SAC updates"""
+    reset_updates: int = 100
+    """SAC updates right after the critic reset of the first feedback round"""
+    unsup_steps: int = 9000
+    """steps of unsupervised pre-training on the state-entropy reward"""
+    knn_k: int = 5
+    """k of the k-th nearest neighbour in the state-entropy reward"""
+    max_feedback: int = 1000
+    """total preference queries (the feedback budget)"""
+    queries_per_round: Optional[int] = None
+    """queries per feedback round; computed at runtime when left unset: max(1, max_feedback // 100)"""
+    feedback_freq: int = 5000
+    """environment steps between feedback rounds"""
+    segment_size: int = 50
+    """length of the segments the teacher compares"""
+    segment_episodes: int = 100
+    """segments are drawn from the last this many complete episodes"""
+    query_sampling: Literal["uniform", "disagreement", "entropy"] = "uniform"
+    """how queries are chosen after the first (always uniform) round"""
+    query_pool_multiplier: int = 10
+    """disagreement/entropy sampling scores this many times more candidate pairs than it asks"""
+    ensemble_size: int = 3
+    """number of reward models"""
+    reward_lr: float = 3e-3
+    """the learning rate of the reward ensemble (one Adam over all members)"""
+    reward_hidden_dim: int = 128
+    """width of the reward models' hidden layers"""
+    reward_layers: int = 4
+    """number of hidden layers of each reward model"""
+    reward_batch_size: int = 128
+    """labelled pairs per reward-model minibatch"""
+    reward_epochs: int = 50
+    """epochs over all labels per feedback round, as SURF's fixed step count ceil(epochs * labels / batch size)"""
+    relabel_batch_size: int = 16384
+    """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
+    teacher_beta: float = -1.0
+    """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
+    teacher_gamma: float = 1.0
+    """teacher myopia: step h of H is weighted by gamma^(H-h)"""
+    teacher_eps_mistake: float = 0.0
+    """probability that the teacher flips a label"""
+    teacher_eps_skip: float = 0.0
+    """the teacher skips pairs where neither segment's return exceeds eps_skip * margin"""
+    teacher_eps_equal: float = 0.0
+    """the teacher labels pairs whose returns differ by less than eps_equal * margin as equal (0.5)"""
+    surf_crop: int = 5
+    """SURF: steps stored on each side of the teacher's segment; crop lengths are segment_size +- surf_crop"""
+    surf_unlabeled_ratio: int = 10
+    """SURF: unlabelled pairs stored per query asked (uniform sampling, never shown to the teacher)"""
+    surf_tau: float = 0.99
+    """SURF: a pseudo-label is kept where the member's preference probability is at least tau"""
+    surf_lambda: float = 1.0
+    """SURF: weight of the unlabelled (pseudo-label) loss"""
+    surf_mu: int = 1
+    """SURF: unlabelled pairs per reward step = surf_mu * reward_batch_size"""
+    eval_freq: int = 5000
+    """evaluate every this many environment steps (and at the end)"""
+    eval_episodes: int = 10
+    """deterministic evaluation episodes, true reward"""
+
+
+def validate_args(args: Args) -> None:
+    """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
+    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.max_feedback < 1:
+        raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
+    if args.queries_per_round is None:
+        args.queries_per_round = max(1, args.max_feedback // 100)
+    if args.queries_per_round < 1:
+        raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
+    if not 1 <= args.segment_size <= args.episode_length:
+        raise ValueError(f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})")
+    if args.learning_starts <= args.knn_k:
+        raise ValueError(f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}")
+    if args.total_timesteps <= args.learning_starts + args.unsup_steps:
+        raise ValueError(
+            f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps}"
+        )
+    if args.learning_starts + args.unsup_steps < args.episode_length:
+        raise ValueError(
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must cover one episode "
+            f"(--episode-length {args.episode_length}): the first feedback round cuts segments from complete episodes"
+        )
+    if args.buffer_size < args.batch_size:
+        raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
+    if not 0 <= args.surf_crop < args.segment_size:
+        raise ValueError(f"--surf-crop must be in [0, --segment-size {args.segment_size}), got {args.surf_crop}")
+    if args.segment_size + 2 * args.surf_crop > args.episode_length:
+        raise ValueError(
+            f"--surf-crop {args.surf_crop}: stored segments of --segment-size + 2 * --surf-crop = "
+            f"{args.segment_size + 2 * args.surf_crop} steps exceed an episode (--episode-length {args.episode_length})"
+        )
+    if args.surf_unlabeled_ratio < 0:
+        raise ValueError(f"--surf-unlabeled-ratio must be >= 0, got {args.surf_unlabeled_ratio}")
+    if not 0.0 <= args.surf_tau <= 1.0:
+        raise ValueError(f"--surf-tau must be in [0, 1], got {args.surf_tau}")
+    if args.surf_lambda < 0.0:
+        raise ValueError(f"--surf-lambda must be >= 0, got {args.surf_lambda}")
+    if args.surf_mu < 1:
+        raise ValueError(f"--surf-mu must be >= 1, got {args.surf_mu}")
+    if not 0.0 < args.teacher_gamma <= 1.0:
+        raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
+    for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
+        if not 0.0 <= getattr(args, flag) <= 1.0:
+            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
+    for flag in ("episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq", "eval_freq",
+                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+
+
+# TRY NOT TO MODIFY: replay and preference storage, on the device
+def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
+    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    return x if noise is None else noise.refresh_(x.clone())
+
+
+class Batch(NamedTuple):
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    dones: torch.Tensor
+    indices: torch.Tensor
+
+
+class ReplayBuffer:
+    """Preallocated circular buffer of transitions; rewards are the reward ensemble's, relabelled in place."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
+        self.obs = torch.zeros((capacity, obs_dim), device=device)
+        self.next_obs = torch.zeros((capacity, obs_dim), device=device)
+        self.actions = torch.zeros((capacity, act_dim), device=device)
+        self.rewards = torch.zeros(capacity, device=device)
+        self.dones = torch.zeros(capacity, device=device)
+        self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
+
+    def add(self, obs, action, next_obs, terminated: bool, reward):
+        self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
+        self.dones[self.pos], self.rewards[self.pos] = float(terminated), reward
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int) -> Batch:
+        idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
+        obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
+        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
+
+    @torch.no_grad()
+    def relabel(self, reward_fn, chunk: int):
+        """Rewrite every stored reward (the whole buffer, also after it wrapped) with `reward_fn([obs, action])`."""
+        for start in range(0, self.size, chunk):
+            rows = slice(start, min(start + chunk, self.size))
+            inputs = torch.cat([read_noisy(self.obs[rows], self.noise), self.actions[rows]], 1)
+            self.rewards[rows] = reward_fn(inputs)
+
+
+class EpisodeStore:
+    """The last `max_episodes` complete episodes as `[obs, action]` rows and true rewards, for cutting segments."""
+
+    def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int, device: torch.device):
+        self.slots = max_episodes + 1  # one slot is being written while the others hold complete episodes
+        self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
+        self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
+        self.max_episodes, self.episode_length, self.obs_dim = max_episodes, episode_length, obs_dim
+        self.n_complete, self.t = 0, 0
+
+    def add(self, obs, action, true_reward: float):
+        """Append one step; an episode is complete after `episode_length` steps (DMC episodes never end early)."""
+        slot = self.n_complete % self.slots
+        self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
+        self.true_rewards[slot, self.t] = true_reward
+        self.t += 1
+        if self.t == self.episode_length:
+            self.n_complete, self.t = self.n_complete + 1, 0
+
+    def sample_segments(self, n_pairs: int, length: int):
+        """Pairs of segments: episode and start drawn independently per side. Returns (n, 2, H, D) and (n, 2, H)."""
+        device = self.inputs.device
+        n_available = min(self.n_complete, self.max_episodes)
+        episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
+        starts = torch.randint(0, self.episode_length - length + 1, (n_pairs, 2), device=device)
+        steps = starts.unsqueeze(-1) + torch.arange(length, device=device)
+        episodes = episodes.unsqueeze(-1)
+        return self.inputs[episodes, steps], self.true_rewards[episodes, steps]
+
+
+class PreferenceBuffer:
+    """Segment pairs `(n, 2, S, obs+act)` with y = P[segment 1 preferred] in {0, 0.5, 1} (unused for unlabelled pairs).
+    SURF stores S = H + 2 * crop steps, the teacher's H = `segment_size` in the middle; S is that of the first pairs added."""
+
+    def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device, noise=None):
+        self.segments = torch.zeros((capacity, 2, 0, input_dim), device=device)  # steps allocated at the first add
+        self.labels = torch.zeros(capacity, device=device)
+        self.size, self.noise, self.segment_size = 0, noise, segment_size
+
+    def add(self, segments: torch.Tensor, labels: torch.Tensor):
+        if self.segments.shape[2] == 0:
+            self.segments = self.segments.new_zeros((len(self.labels), *segments.shape[1:]))
+        n = len(labels)
+        self.segments[self.size : self.size + n], self.labels[self.size : self.size + n] = segments, labels
+        self.size += n
+
+    def read(self, indices: torch.Tensor):
+        return read_noisy(self.segments[indices], self.noise), self.labels[indices]
+
+
+# ALGO LOGIC: initialize agent here:
+def layer_init(layer: nn.Linear) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class SoftQNetwork(nn.Module):
+    """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim + act_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 1)),
+        )
+
+    def forward(self, obs, actions):
+        return self.net(torch.cat([obs, actions], 1)).squeeze(-1)
+
+
+LOG_STD_MAX = 2
+LOG_STD_MIN = -5
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 2 * act_dim)),
+        )
+
+    def forward(self, obs):
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+        return mean, log_std
+
+    def get_action(self, obs):
+        """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
+        mean, log_std = self(obs)
+        x = mean + log_std.exp() * torch.randn_like(mean)
+        log_prob = torch.distributions.Normal(mean, log_std.exp()).log_prob(x)
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
+
+
+@torch.no_grad()
+def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
+    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    obs = np.stack([env.reset()[0] for env in envs])
+    returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
+    while running.any():
+        actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
+        for i in np.flatnonzero(running):
+            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+            returns[i] += reward
+            running[i] = not (terminated or truncated)
+    return returns
+
+
+# PBRL LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
+class RewardEnsemble(nn.Module):
+    """`ensemble_size` reward MLPs on [obs, action] in one batched pass: LeakyReLU hidden layers, tanh output."""
+
+    def __init__(self, input_dim: int, hidden_dim: int, n_hidden: int, ensemble_size: int):
+        super().__init__()
+        dims = [input_dim] + [hidden_dim] * n_hidden + [1]
+        self.weights = nn.ParameterList()  # weights[0] is the input layer, (E, hidden, input) like nn.Linear
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(dims[:-1], dims[1:]):
+            bound = 1 / math.sqrt(fan_in)  # nn.Linear's default initialisation, per member
+            self.weights.append(nn.Parameter(torch.empty(ensemble_size, fan_out, fan_in).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(ensemble_size, 1, fan_out).uniform_(-bound, bound)))
+        self.ensemble_size = ensemble_size
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Per-member rewards (E, N) of rows x: (N, D) shared by all members, or (E, N, D) one set per member."""
+        if x.dim() == 2:
+            x = x.expand(self.ensemble_size, *x.shape)
+        for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
+            x = torch.baddbmm(bias, x, weight.transpose(1, 2))
+            x = F.leaky_relu(x) if i < len(self.weights) - 1 else torch.tanh(x)
+        return x.squeeze(-1)
+
+    def mean_reward(self, x: torch.Tensor) -> torch.Tensor:
+        """The agent's reward: the ensemble mean."""
+        return self(x).mean(0)
+
+    def member_state_dicts(self) -> list:
+        return [{name: value[e] for name, value in self.state_dict().items()} for e in range(self.ensemble_size)]
+
+
+def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Bradley-Terry cross-entropy per member. returns (E, B, 2) segment sums; labels (E, B) = P[segment 1 preferred]."""
+    log_probs = F.log_softmax(returns, dim=-1)
+    return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
+
+
+def temporal_crop(shape: tuple, stored: int, segment_size: int, crop: int, device: torch.device) -> torch.Tensor:
+    """SURF's temporal crop of pairs of `stored`-step segments, as a 0/1 step mask (*shape, 2, stored): one length per
+    pair in [segment_size - crop, segment_size + crop], start offsets drawn independently for the two segments."""
+    lengths = torch.randint(segment_size - crop, segment_size + crop + 1, (*shape, 1, 1), device=device)
+    starts = (torch.rand((*shape, 2, 1), device=device) * (stored - lengths + 1)).long()  # uniform in [0, stored - L]
+    steps = torch.arange(stored, device=device)
+    return ((steps >= starts) & (steps < starts + lengths)).float()
+
+
+def pseudo_labels(returns: torch.Tensor, tau: float):
+    """SURF's pseudo-labels from a member's returns (..., 2): the preferred segment (1.0 if segment 1), and whether its
+    preference probability reaches tau (the pairs whose label is kept)."""
+    confidence, preferred = returns.softmax(-1).max(-1)
+    return preferred.float(), confidence >= tau
+
+
+def pseudo_label_loss(returns: torch.Tensor, targets: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+    """SURF's unlabelled loss per member: cross-entropy of returns (E, B, 2) with the pseudo-labels (E, B) where kept,
+    averaged over the whole minibatch (the pairs not kept count as 0, FixMatch style)."""
+    log_probs = F.log_softmax(returns, dim=-1)
+    return -(kept * ((1 - targets) * log_probs[..., 0] + targets * log_probs[..., 1])).mean(-1)
+
+
+def surf_iterations(n_labels: int, epochs: int, batch_size: int) -> int:
+    """Reward steps in a SURF round: `epochs` passes over the labels as a fixed count, no early stop."""
+    return math.ceil(epochs * n_labels / batch_size)
+
+
+def member_minibatches(n: int, members: int, batch_size: int, device: torch.device):
+    """Endless minibatch indices (E, B) into n items: an independent shuffle per member, a new one after each pass (the
+    last minibatch of a pass may be short)."""
+    while True:
+        order = torch.rand(members, n, device=device).argsort(1)
+        for start in range(0, n, batch_size):
+            yield order[:, start : start + batch_size]
+
+
+def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unlabeled: PreferenceBuffer, batch_size: int,
+                 epochs: int, crop: int, tau: float, lam: float, mu: int):
+    """One round of SURF reward learning: `surf_iterations` steps of the Bradley-Terry loss on cropped labelled pairs plus
+    `lam` x the pseudo-label loss on `mu * batch_size` cropped unlabelled pairs, per member. Returns (mean member loss and
+    accuracy over the last pass over the labels, epochs, share of unlabelled pairs that got a pseudo-label)."""
+    n, members, device = prefs.size, model.ensemble_size, prefs.labels.device
+    central, iterations = slice(crop, crop + prefs.segment_size), surf_iterations(n, epochs, batch_size)
+    labeled_batches = member_minibatches(n, members, batch_size, device)
+    unlabeled_batches = member_minibatches(unlabeled.size, members, batch_size * mu, device) if unlabeled.size else None
+    loss_sum, correct, strict, seen, kept, pseudo = torch.zeros(6, device=device)
+    pairs = 0
+    for iteration in range(iterations):
+        segments, labels = prefs.read(next(labeled_batches))  # (E, B, 2, S, D), (E, B)
+        rewards = model(segments.flatten(1, 3)).view(*segments.shape[:4])  # per step, (E, B, 2, S)
+        returns = (rewards * temporal_crop(labels.shape, segments.shape[3], prefs.segment_size, crop, device)).sum(-1)
+        member_losses = preference_loss(returns, labels)
+        unlabeled_losses = torch.zeros_like(member_losses)
+        if unlabeled_batches is not None:
+            segments_u, _ = unlabeled.read(next(unlabeled_batches))
+            rewards_u = model(segments_u.flatten(1, 3)).view(*segments_u.shape[:4])
+            targets, confident = pseudo_labels(rewards_u[..., central].detach().sum(-1), tau)  # uncropped central steps
+            crops_u = temporal_crop(targets.shape, segments_u.shape[3], prefs.segment_size, crop, device)
+            unlabeled_losses = pseudo_label_loss((rewards_u * crops_u).sum(-1), targets, confident)
+            kept, pseudo = kept + confident.sum(), pseudo + confident.numel()
+        optimizer.zero_grad()
+        (member_losses + lam * unlabeled_losses).sum().backward()
+        optimizer.step()
+        pairs += labels.shape[1]
+        if iteration >= iterations - math.ceil(n / batch_size):  # the last pass over the labels, as PEBBLE's last epoch
+            is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5] but have no right answer
+            correct += (((returns[..., 1] > returns[..., 0]) == (labels > 0.5)) & is_strict).sum()
+            strict += is_strict.sum()
+            loss_sum += member_losses.detach().sum() * labels.shape[1]
+            seen += labels.numel()
+    accuracy = (correct / strict).item()  # NaN when every label is "equal"
+    return (loss_sum / seen).item(), accuracy, pairs / n, (kept / pseudo.clamp_min(1)).item()
+
+
+def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float, eps_skip: float,
+            eps_equal: float):
+    """B-Pref's simulated teacher on true per-step rewards (n, H). Returns (kept pairs mask, labels in {0, 0.5, 1})."""
+    returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
+    keep = torch.ones_like(returns0, dtype=torch.bool)
+    if eps_skip > 0:  # skip pairs where neither segment is good enough
+        keep = torch.maximum(returns0, returns1) > eps_skip * margin
+    equal = (returns0 - returns1).abs() < eps_equal * margin
+    horizon = rewards0.shape[1]
+    weights = gamma ** torch.arange(horizon - 1, -1, -1, device=rewards0.device, dtype=rewards0.dtype)
+    discounted0, discounted1 = (rewards0 * weights).sum(1), (rewards1 * weights).sum(1)
+    if beta > 0:
+        labels = torch.bernoulli(torch.sigmoid(beta * (discounted1 - discounted0)))
+    else:
+        labels = (discounted1 > discounted0).float()  # ties prefer segment 0
+    mistakes = torch.rand_like(labels) < eps_mistake
+    labels = torch.where(mistakes, 1 - labels, labels)
+    labels = torch.where(equal, torch.full_like(labels, 0.5), labels)
+    return keep, labels
+
+
+@torch.no_grad()
+def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
+                   pool_multiplier: int, noise=None, crop: int = 0):
+    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement / entropy). SURF:
+    segments of segment_size + 2 * crop steps, scored on their central segment_size steps."""
+    if sampling == "uniform":
+        return store.sample_segments(n_queries, segment_size + 2 * crop)
+    segments, true_rewards = store.sample_segments(n_queries * pool_multiplier, segment_size + 2 * crop)
+    inputs = read_noisy(segments[:, :, crop : crop + segment_size], noise)
+    returns = model(inputs.flatten(0, 2)).view(model.ensemble_size, *inputs.shape[:3]).sum(-1)
+    p = returns.softmax(-1)[..., 1]  # each member's P[segment 1 preferred], (E, pool)
+    if sampling == "disagreement":
+        score = p.std(0, correction=0)
+    else:  # entropy: the mean of the members' binary entropies
+        score = -(p * p.clamp_min(1e-12).log() + (1 - p) * (1 - p).clamp_min(1e-12).log()).mean(0)
+    top = score.topk(n_queries).indices
+    return segments[top], true_rewards[top]
+
+
+class RunningMeanStd:
+    """Running mean and variance over batches (Chan et al.'s parallel merge), kept on the device."""
+
+    def __init__(self, device: torch.device):
+        self.mean = torch.zeros((), device=device)
+        self.var = torch.zeros((), device=device)
+        self.count = 0
+
+    def update(self, x: torch.Tensor):
+        batch_mean, batch_var, n = x.mean(), x.var(correction=0), x.numel()
+        delta, total = batch_mean - self.mean, self.count + n
+        self.var = (self.var * self.count + batch_var * n + delta**2 * self.count * n / total) / total
+        self.mean = self.mean + delta * n / total
+        self.count = total
+
+    @property
+    def std(self) -> torch.Tensor:
+        return self.var.sqrt()
+
+
+@torch.no_grad()
+def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 16384) -> torch.Tensor:
+    """L2 distance from each sample to its k-th nearest neighbour among `points`, the sample itself excluded
+    (samples are rows of `points`, so the nearest one, at distance 0, is skipped)."""
+    nearest = None
+    for part in points.split(chunk):
+        d = torch.cdist(samples, part) if nearest is None else torch.cat([nearest, torch.cdist(samples, part)], 1)
+        nearest = d.topk(min(k + 1, d.shape[1]), dim=1, largest=False).values
+    return nearest[:, k]
+
+
+def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, stats: RunningMeanStd) -> torch.Tensor:
+    """PEBBLE's intrinsic reward for rows `indices` of the buffer `points`: k-NN distance / running std."""
+    distances = knn_distance(points[indices], points, k)
+    stats.update(distances)
+    return distances / stats.std
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    try:  # bad input fails here, with one line, before any output is written
+        validate_args(args)
+        env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
+        eval_envs = [
+            ene.make_env(
+                args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
+                args.episode_length, f"videos/{run_name}" if args.capture_video and i == 0 else None,
+            )
+            for i in range(args.eval_episodes)
+        ]
+    except ValueError as e:
+        raise SystemExit(f"{args.exp_name}: error: {e}")
+    for i, eval_env in enumerate(eval_envs):
+        eval_env.reset(seed=args.seed + 1000 * (i + 1))
+
+    if args.track:
+        import wandb
+
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    writer = SummaryWriter(f"runs/{run_name}")
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+    )
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if args.threads is not None or device.type == "cpu":
+        torch.set_num_threads(args.threads or 1)  # several runs per machine: default threads oversubscribe the cores
+
+    obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
+    noise = env.noise_sampler if args.noise_resample else None
+
+    # ALGO LOGIC: agent
+    def make_critic():
+        """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+        qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+        qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf1_target.load_state_dict(qf1.state_dict())
+        qf2_target.load_state_dict(qf2.state_dict())
+        return qf1, qf2, q_optimizer, qf1_target, qf2_target
+
+    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
+    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
+    target_entropy = -float(act_dim)
+    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
+    alpha = log_alpha.detach().exp()
+    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
+
+    # PBRL LOGIC: reward ensemble and storage
+    reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
+    reward_model = reward_model.to(device)
+    reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr)
+    rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
+    episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
+    prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
+    unlabeled = PreferenceBuffer(args.max_feedback * args.surf_unlabeled_ratio, args.segment_size, obs_dim + act_dim,
+                                 device, noise)  # SURF's unlabelled pairs, labels unused
+    entropy_stats = RunningMeanStd(device)
+    recent_returns = deque(maxlen=10)  # true returns of the last training episodes, for the teacher's margin
+    total_feedback = labeled_feedback = sac_updates = 0
+
+    def sac_update(data: Batch) -> dict:
+        """One SAC gradient step: critics, then actor and temperature, then Polyak targets. Losses stay on device."""
+        global sac_updates
+        with torch.no_grad():
+            next_actions, next_log_pi, _ = actor.get_action(data.next_obs)
+            next_q = torch.min(qf1_target(data.next_obs, next_actions), qf2_target(data.next_obs, next_actions))
+            target_q = data.rewards + (1 - data.dones) * args.gamma * (next_q - alpha * next_log_pi)
+        qf1_values, qf2_values = qf1(data.obs, data.actions), qf2(data.obs, data.actions)
+        qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
+        q_optimizer.zero_grad()
+        (qf1_loss + qf2_loss).backward()
+        q_optimizer.step()
+        sac_updates += 1
+        losses.update(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
+                      qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
+
+        if sac_updates % args.actor_update_freq == 0:
+            pi, log_pi, _ = actor.get_action(data.obs)
+            actor_loss = (alpha * log_pi - torch.min(qf1(data.obs, pi), qf2(data.obs, pi))).mean()
+            actor_optimizer.zero_grad()
+            actor_loss.backward()
+            actor_optimizer.step()
+            alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
+            a_optimizer.zero_grad()
+            alpha_loss.backward()
+            a_optimizer.step()
+            alpha.copy_(log_alpha.detach().exp())
+            losses.update(actor_loss=actor_loss.detach(), alpha=alpha.clone(), alpha_loss=alpha_loss.detach())
+
+        if sac_updates % args.target_update_freq == 0:
+            with torch.no_grad():
+                online = list(qf1.parameters()) + list(qf2.parameters())
+                torch._foreach_lerp_(list(qf1_target.parameters()) + list(qf2_target.parameters()), online, args.tau)
+        return losses
+
+    def feedback_round(sampling: str):
+        """Ask the teacher one round of queries, store unlabelled pairs, train the reward ensemble on all pairs, relabel
+        the whole buffer."""
+        global total_feedback, labeled_feedback
+        n_queries = min(args.queries_per_round, args.max_feedback - total_feedback)
+        segments, true_rewards = select_queries(
+            reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
+            args.surf_crop,
+        )
+        margin = float(np.mean(recent_returns)) * args.segment_size / args.episode_length if recent_returns else 0.0
+        central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # the teacher sees the central steps
+        keep, labels = teacher(
+            true_rewards[:, 0, central], true_rewards[:, 1, central], margin, args.teacher_beta, args.teacher_gamma,
+            args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
+        )
+        prefs.add(segments[keep], labels[keep])
+        unlabeled_segments, _ = episodes.sample_segments(
+            n_queries * args.surf_unlabeled_ratio, args.segment_size + 2 * args.surf_crop
+        )
+        unlabeled.add(unlabeled_segments, torch.zeros(len(unlabeled_segments), device=device))
+        total_feedback, labeled_feedback = total_feedback + n_queries, prefs.size
+        writer.add_scalar("pbrl/total_feedback", total_feedback, global_step)
+        writer.add_scalar("pbrl/labeled_feedback", labeled_feedback, global_step)
+        if prefs.size:  # a round may yield no label at all (skipping teacher)
+            loss, accuracy, epochs, pseudo_label_rate = train_reward(
+                reward_model, reward_optimizer, prefs, unlabeled, args.reward_batch_size, args.reward_epochs,
+                args.surf_crop, args.surf_tau, args.surf_lambda, args.surf_mu,
+            )
+            writer.add_scalar("pbrl/reward_loss", loss, global_step)
+            writer.add_scalar("pbrl/pseudo_label_rate", pseudo_label_rate, global_step)
+            writer.add_scalar("pbrl/reward_accuracy", accuracy, global_step)
+            writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
+        rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
+
+    def save_checkpoint():
+        checkpoint = {
+            "args": vars(args),
+            "global_step": global_step + 1,
+            "actor": actor.state_dict(),
+            "qf1": qf1.state_dict(),
+            "qf2": qf2.state_dict(),
+            "log_alpha": log_alpha.detach().cpu(),
+            "reward_models": reward_model.member_state_dicts(),
+            "obs_dim_real": obs_dim_real,
+            "obs_dim": obs_dim,
+            "act_dim": act_dim,
+        }
+        torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
+
+    # TRY NOT TO MODIFY: start the game
+    start_time = time.time()
+    obs, _ = env.reset(seed=args.seed)
+    obs = torch.as_tensor(obs, device=device)
+    episode_return, episode_length, losses = 0.0, 0, {}
+    pebble_start = args.learning_starts + args.unsup_steps
+    for global_step in range(args.total_timesteps):
+        # ALGO LOGIC: put action logic here
+        if global_step < args.learning_starts:
+            action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
+        else:
+            with torch.no_grad():
+                action = actor.get_action(obs.unsqueeze(0))[0][0]
+
+        # TRY NOT TO MODIFY: execute the game and log data.
+        next_obs, true_reward, terminated, truncated, _ = env.step(action.cpu().numpy())
+        next_obs = torch.as_tensor(next_obs, device=device)
+        with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
+            predicted_reward = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0]
+        rb.add(obs, action, next_obs, terminated, predicted_reward)
+        episodes.add(obs, action, float(true_reward))
+        episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
+        obs = next_obs  # CRUCIAL step easy to overlook
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", episode_return, global_step)
+            writer.add_scalar("charts/episodic_length", episode_length, global_step)
+            recent_returns.append(episode_return)
+            obs, _ = env.reset()
+            obs = torch.as_tensor(obs, device=device)
+            episode_return, episode_length = 0.0, 0
+
+        # ALGO LOGIC: training.
+        if global_step >= args.learning_starts:
+            if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
+                data = rb.sample(args.batch_size)
+                points = read_noisy(rb.obs[: rb.size], noise)
+                intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
+                sac_update(data._replace(rewards=intrinsic_reward))
+                losses["state_entropy_reward"] = intrinsic_reward.mean()
+            elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
+                feedback_round("uniform")
+                qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
+                for _ in range(args.reset_updates):
+                    sac_update(rb.sample(args.batch_size))
+            else:
+                if (global_step - pebble_start) % args.feedback_freq == 0 and total_feedback < args.max_feedback:
+                    feedback_round(args.query_sampling)
+                sac_update(rb.sample(args.batch_size))
+
+            if global_step % args.log_freq == 0:
+                for name, value in zip(losses, torch.stack(list(losses.values())).tolist()):
+                    writer.add_scalar(f"losses/{name}", value, global_step)
+
+        if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
+            eval_return = float(evaluate(actor, eval_envs, device).mean())
+            sps = int((global_step + 1) / (time.time() - start_time))
+            writer.add_scalar("eval/episodic_return", eval_return, global_step + 1)
+            writer.add_scalar("charts/SPS", sps, global_step + 1)
+            print(
+                f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                f"feedback={total_feedback}/{args.max_feedback} labels={labeled_feedback}",
+                flush=True,
+            )
+            if args.save_model:
+                save_checkpoint()
+
+    env.close()
+    for eval_env in eval_envs:
+        eval_env.close()
+    writer.close()
