@@ -1,0 +1,522 @@
+# docs and experiment results can be found in README.md, in the section named after this file
+"""SAC on the true reward, in an Extremely Noisy Environment: the oracle of the preference-based scripts.
+
+Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside `pebble.py` (same
+networks, update, flags and defaults, from the R2N paper's appendix; Muslimani et al., AAMAS 2025), but the replay
+buffer stores the environment's reward instead of a learned one. It is `pebble.py` with the preference learning
+deleted, so `diff sac.py pebble.py` shows only PEBBLE: reward ensemble, teacher, queries, preference buffer, episode
+store, state-entropy pre-training, feedback rounds, relabelling and the critic reset. The loop, one iteration per
+env step:
+
+1. `global_step < learning_starts`: uniform random actions, no learning.
+2. then one SAC update per step on the true reward.
+Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
+
+Two uses: the upper bound ("SAC with the true reward") for the PbRL curves at the same `--noise`, and, with
+`--noise 0`, the noise-free policy whose deterministic rollouts give the histograms of `--noise-type imitate`
+(`make_histograms.py`). Choices where the paper is silent: those of `pebble.py` that concern SAC (`--noise-resample`
+redraws the noise columns of replay minibatches, as ANF does; the critics bootstrap on `terminated` only);
+`make_critic` stays a function (PEBBLE resets the critic) so that the shared code is byte-identical.
+
+Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
+"""
+# ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent. ANF (Grooten et al., "Automatic Noise
+# Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) with the agent half of the R2N patch
+# (`diff pebble.py r2n_pebble.py`), copied unchanged, its reward half dropped. It keeps 20% of the weights of the
+# input layers of actor, Q1 and Q2 (independent random masks) and every 1000 SAC optimiser steps drops the 5%
+# smallest-magnitude active weights and grows as many where the dense gradient is largest (RigL, as R2N does
+# "following ANF"; ANF's public code regrows at random, like SET), so the agent moves its connections onto the
+# task-relevant features. Masked weights are exactly 0; their gradients and Adam moments are kept at 0; grown weights
+# start at 0 with zero moments. Target critics are dense Polyak copies. `diff sac.py anf_sac.py` is that change.
+import math
+import os
+import random
+import time
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Optional
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import torch.optim as optim
+import tyro
+from torch.utils.tensorboard import SummaryWriter
+
+import ene
+
+
+@dataclass
+class Args:
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (run folder and checkpoint name)"""
+    seed: int = 1
+    """seed of the experiment"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be used when available"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "r2n"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    save_model: bool = True
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    threads: Optional[int] = None
+    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    log_freq: int = 1000
+    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+
+    # Environment arguments
+    env_id: str = "cheetah-run"
+    """the dm_control task, as domain-task"""
+    noise: float = 0.9
+    """fraction of all observation features that are noise, in [0, 1)"""
+    noise_type: Literal["gaussian", "imitate"] = "gaussian"
+    """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
+    noise_resample: bool = True
+    """redraw the noise columns of stored observations whenever they are read back (ANF's semantics)"""
+    noise_histograms: Optional[str] = None
+    """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
+    episode_length: int = 1000
+    """environment steps per episode (episodes are truncated, never terminated)"""
+
+    # Algorithm specific arguments
+    total_timesteps: int = 1_000_000
+    """total environment steps"""
+    buffer_size: int = 1_000_000
+    """the replay memory buffer size"""
+    gamma: float = 0.99
+    """the discount factor gamma"""
+    tau: float = 0.005
+    """target smoothing coefficient"""
+    batch_size: int = 1024
+    """the batch size of SAC updates"""
+    hidden_dim: int = 1024
+    """width of the two hidden layers of actor and critics"""
+    learning_starts: int = 1000
+    """steps of uniform random actions before learning starts"""
+    policy_lr: float = 1e-4
+    """the learning rate of the policy network optimizer"""
+    q_lr: float = 1e-4
+    """the learning rate of the Q network optimizer"""
+    alpha_lr: float = 1e-4
+    """the learning rate of the temperature"""
+    init_temperature: float = 0.1
+    """initial entropy temperature alpha (learned, target entropy -|A|)"""
+    actor_update_freq: int = 1
+    """actor and temperature update every this many SAC updates"""
+    target_update_freq: int = 2
+    """target critics update every this many SAC updates"""
+    eval_freq: int = 5000
+    """evaluate every this many environment steps (and at the end)"""
+    eval_episodes: int = 10
+    """deterministic evaluation episodes, true reward"""
+
+    # ANF arguments: dynamic sparse training (RigL) of the input layers of actor and critics
+    agent_sparsity: float = 0.8
+    """fraction of the actor's and critics' input-layer weights that are zero"""
+    agent_drop_fraction: float = 0.05
+    """fraction of an actor/critic input layer's active weights dropped and regrown per topology update"""
+    agent_topology_period: int = 1000
+    """SAC optimiser steps between topology updates of actor and critics"""
+
+
+def validate_args(args: Args) -> None:
+    """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
+    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.buffer_size < args.batch_size:
+        raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
+    if not 0.0 <= args.agent_sparsity < 1.0:
+        raise ValueError(f"--agent-sparsity must be in [0, 1), got {args.agent_sparsity}")
+    if not 0.0 <= args.agent_drop_fraction <= 1.0:
+        raise ValueError(f"--agent-drop-fraction must be in [0, 1], got {args.agent_drop_fraction}")
+    for flag in ("agent_topology_period", "episode_length", "eval_freq",
+                 "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+
+
+# TRY NOT TO MODIFY: replay storage, on the device
+def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
+    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    return x if noise is None else noise.refresh_(x.clone())
+
+
+class Batch(NamedTuple):
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    dones: torch.Tensor
+    indices: torch.Tensor
+
+
+class ReplayBuffer:
+    """Preallocated circular buffer of transitions; rewards are the environment's."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
+        self.obs = torch.zeros((capacity, obs_dim), device=device)
+        self.next_obs = torch.zeros((capacity, obs_dim), device=device)
+        self.actions = torch.zeros((capacity, act_dim), device=device)
+        self.rewards = torch.zeros(capacity, device=device)
+        self.dones = torch.zeros(capacity, device=device)
+        self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
+
+    def add(self, obs, action, next_obs, terminated: bool, reward):
+        self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
+        self.dones[self.pos], self.rewards[self.pos] = float(terminated), reward
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int) -> Batch:
+        idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
+        obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
+        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
+
+
+# ALGO LOGIC: initialize agent here:
+def layer_init(layer: nn.Linear) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class SoftQNetwork(nn.Module):
+    """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim + act_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 1)),
+        )
+
+    def forward(self, obs, actions):
+        return self.net(torch.cat([obs, actions], 1)).squeeze(-1)
+
+
+LOG_STD_MAX = 2
+LOG_STD_MIN = -5
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 2 * act_dim)),
+        )
+
+    def forward(self, obs):
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+        return mean, log_std
+
+    def get_action(self, obs):
+        """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
+        mean, log_std = self(obs)
+        x = mean + log_std.exp() * torch.randn_like(mean)
+        log_prob = torch.distributions.Normal(mean, log_std.exp()).log_prob(x)
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
+
+
+@torch.no_grad()
+def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
+    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    obs = np.stack([env.reset()[0] for env in envs])
+    returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
+    while running.any():
+        actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
+        for i in np.flatnonzero(running):
+            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+            returns[i] += reward
+            running[i] = not (terminated or truncated)
+    return returns
+
+
+# SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
+def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> torch.Tensor:
+    """0/1 mask with N - floor(sparsity * N) active positions per matrix (last two dims), uniform over the matrix."""
+    n = shape[-2] * shape[-1]
+    scores = torch.rand(*shape[:-2], n, device=device)
+    mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
+    return mask.view(shape)
+
+
+def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices of the k largest scores per row; equal scores are ordered at random."""
+    shuffle = torch.rand_like(scores).argsort(-1)
+    order = torch.sort(scores.gather(-1, shuffle), dim=-1, descending=True, stable=True).indices[..., :k]
+    return shuffle.gather(-1, order)
+
+
+@torch.no_grad()
+def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
+                 moments: list) -> None:
+    """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|, grow as many where the dense
+    gradient is largest among positions not kept (a just-dropped one may regrow); grown weights and the Adam
+    `moments` of dropped and grown positions are set to 0. The number of active weights never changes."""
+    size = weight.shape[-2] * weight.shape[-1]
+    w, m, g = weight.view(-1, size), mask.view(-1, size), dense_grad.view(-1, size)
+    n_drop = math.floor(drop_fraction * int(m[0].sum()))
+    if n_drop == 0:
+        return
+    drop = top_k_random_ties(torch.where(m.bool(), -w.abs(), -torch.inf), n_drop)
+    kept = m.scatter(1, drop, 0.0)
+    grow = top_k_random_ties(torch.where(kept.bool(), -torch.inf, g.abs()), n_drop)
+    new_mask = kept.scatter(1, grow, 1.0)
+    assert torch.equal(new_mask.sum(1), m.sum(1)), "a topology update changed the number of active weights"
+    w.mul_(kept)
+    for moment in moments:
+        moment.view(-1, size).mul_(kept)
+    m.copy_(new_mask)
+
+
+class SparseOptimizer:
+    """Wraps an optimizer whose parameters include sparse input layers (`layers`: name -> weight). Each step masks
+    the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay exactly 0), re-applies the masks,
+    and every `period` steps runs a RigL update with that step's dense gradient. Sparsity 0 means dense."""
+
+    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
+        self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
+        self.drop_fraction, self.period, self.steps = drop_fraction, period, 0
+        self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
+        with torch.no_grad():
+            for name, weight in layers.items():
+                weight.mul_(self.masks[name])
+
+    def zero_grad(self):
+        self.optimizer.zero_grad()
+
+    def step(self):
+        if self.sparsity == 0:
+            return self.optimizer.step()
+        self.steps += 1
+        update_topology = self.steps % self.period == 0
+        dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
+        for name, weight in self.layers.items():
+            weight.grad.mul_(self.masks[name])
+        self.optimizer.step()
+        with torch.no_grad():
+            for name, weight in self.layers.items():
+                weight.mul_(self.masks[name])
+        for name, grad in dense_grads.items():
+            state = self.optimizer.state[self.layers[name]]
+            rigl_update_(self.layers[name], self.masks[name], grad, self.drop_fraction,
+                         [state["exp_avg"], state["exp_avg_sq"]])
+
+    def named_matrices(self, tensors: dict):
+        """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
+        for name, tensor in tensors.items():
+            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
+
+
+@torch.no_grad()
+def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero weights per relevant
+    column (real features and actions) and per noise column, and the share of non-zero weights on relevant columns
+    (chance level: relevant columns / all columns)."""
+    degree = (weight != 0).sum(0).float()
+    column = torch.arange(weight.shape[1], device=weight.device)
+    relevant = (column < obs_dim_real) | (column >= obs_dim)
+    metrics = {"relevant_degree": degree[relevant].mean(), "relevant_active_frac": degree[relevant].sum() / degree.sum()}
+    if (~relevant).any():
+        metrics["noise_degree"] = degree[~relevant].mean()
+    return metrics
+
+
+if __name__ == "__main__":
+    args = tyro.cli(Args)
+    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
+    try:  # bad input fails here, with one line, before any output is written
+        validate_args(args)
+        env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
+        eval_envs = [
+            ene.make_env(
+                args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
+                args.episode_length, f"videos/{run_name}" if args.capture_video and i == 0 else None,
+            )
+            for i in range(args.eval_episodes)
+        ]
+    except ValueError as e:
+        raise SystemExit(f"{args.exp_name}: error: {e}")
+    for i, eval_env in enumerate(eval_envs):
+        eval_env.reset(seed=args.seed + 1000 * (i + 1))
+
+    if args.track:
+        import wandb
+
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            monitor_gym=True,
+            save_code=True,
+        )
+    writer = SummaryWriter(f"runs/{run_name}")
+    writer.add_text(
+        "hyperparameters",
+        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+    )
+
+    # TRY NOT TO MODIFY: seeding
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    torch.backends.cudnn.deterministic = args.torch_deterministic
+
+    device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
+    if args.threads is not None or device.type == "cpu":
+        torch.set_num_threads(args.threads or 1)  # several runs per machine: default threads oversubscribe the cores
+
+    obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
+    noise = env.noise_sampler if args.noise_resample else None
+
+    # ALGO LOGIC: agent
+    def make_critic():
+        """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+        qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+        q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
+                                      args.agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
+        qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+        qf1_target.load_state_dict(qf1.state_dict())
+        qf2_target.load_state_dict(qf2.state_dict())
+        return qf1, qf2, q_optimizer, qf1_target, qf2_target
+
+    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
+    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight}, args.agent_sparsity,
+                                      args.agent_drop_fraction, args.agent_topology_period)
+    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
+    target_entropy = -float(act_dim)
+    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
+    alpha = log_alpha.detach().exp()
+    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
+
+    # ALGO LOGIC: storage
+    rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
+    sac_updates = 0
+
+    def sac_update(data: Batch) -> dict:
+        """One SAC gradient step: critics, then actor and temperature, then Polyak targets. Losses stay on device."""
+        global sac_updates
+        with torch.no_grad():
+            next_actions, next_log_pi, _ = actor.get_action(data.next_obs)
+            next_q = torch.min(qf1_target(data.next_obs, next_actions), qf2_target(data.next_obs, next_actions))
+            target_q = data.rewards + (1 - data.dones) * args.gamma * (next_q - alpha * next_log_pi)
+        qf1_values, qf2_values = qf1(data.obs, data.actions), qf2(data.obs, data.actions)
+        qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
+        q_optimizer.zero_grad()
+        (qf1_loss + qf2_loss).backward()
+        q_optimizer.step()
+        sac_updates += 1
+        losses.update(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
+                      qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
+
+        if sac_updates % args.actor_update_freq == 0:
+            pi, log_pi, _ = actor.get_action(data.obs)
+            actor_loss = (alpha * log_pi - torch.min(qf1(data.obs, pi), qf2(data.obs, pi))).mean()
+            actor_optimizer.zero_grad()
+            actor_loss.backward()
+            actor_optimizer.step()
+            alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
+            a_optimizer.zero_grad()
+            alpha_loss.backward()
+            a_optimizer.step()
+            alpha.copy_(log_alpha.detach().exp())
+            losses.update(actor_loss=actor_loss.detach(), alpha=alpha.clone(), alpha_loss=alpha_loss.detach())
+
+        if sac_updates % args.target_update_freq == 0:
+            with torch.no_grad():
+                online = list(qf1.parameters()) + list(qf2.parameters())
+                torch._foreach_lerp_(list(qf1_target.parameters()) + list(qf2_target.parameters()), online, args.tau)
+        return losses
+
+    def sparse_optimizers():
+        return actor_optimizer, q_optimizer
+
+    def save_checkpoint():
+        checkpoint = {
+            "args": vars(args),
+            "global_step": global_step + 1,
+            "actor": actor.state_dict(),
+            "qf1": qf1.state_dict(),
+            "qf2": qf2.state_dict(),
+            "log_alpha": log_alpha.detach().cpu(),
+            "masks": {name: mask.cpu() for opt in sparse_optimizers() for name, mask in opt.named_matrices(opt.masks)},
+            "obs_dim_real": obs_dim_real,
+            "obs_dim": obs_dim,
+            "act_dim": act_dim,
+        }
+        torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
+
+    # TRY NOT TO MODIFY: start the game
+    start_time = time.time()
+    obs, _ = env.reset(seed=args.seed)
+    obs = torch.as_tensor(obs, device=device)
+    episode_return, episode_length, losses = 0.0, 0, {}
+    for global_step in range(args.total_timesteps):
+        # ALGO LOGIC: put action logic here
+        if global_step < args.learning_starts:
+            action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
+        else:
+            with torch.no_grad():
+                action = actor.get_action(obs.unsqueeze(0))[0][0]
+
+        # TRY NOT TO MODIFY: execute the game and log data.
+        next_obs, true_reward, terminated, truncated, _ = env.step(action.cpu().numpy())
+        next_obs = torch.as_tensor(next_obs, device=device)
+        rb.add(obs, action, next_obs, terminated, float(true_reward))
+        episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
+        obs = next_obs  # CRUCIAL step easy to overlook
+        if terminated or truncated:
+            writer.add_scalar("charts/episodic_return", episode_return, global_step)
+            writer.add_scalar("charts/episodic_length", episode_length, global_step)
+            obs, _ = env.reset()
+            obs = torch.as_tensor(obs, device=device)
+            episode_return, episode_length = 0.0, 0
+
+        # ALGO LOGIC: training.
+        if global_step >= args.learning_starts:
+            sac_update(rb.sample(args.batch_size))
+
+            if global_step % args.log_freq == 0:
+                for name, value in zip(losses, torch.stack(list(losses.values())).tolist()):
+                    writer.add_scalar(f"losses/{name}", value, global_step)
+
+        if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
+            eval_return = float(evaluate(actor, eval_envs, device).mean())
+            sps = int((global_step + 1) / (time.time() - start_time))
+            writer.add_scalar("eval/episodic_return", eval_return, global_step + 1)
+            writer.add_scalar("charts/SPS", sps, global_step + 1)
+            for opt in sparse_optimizers():
+                for name, weight in opt.named_matrices(opt.layers):
+                    for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
+                        writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
+            print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps}", flush=True)
+            if args.save_model:
+                save_checkpoint()
+
+    env.close()
+    for eval_env in eval_envs:
+        eval_env.close()
+    writer.close()
