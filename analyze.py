@@ -1,0 +1,580 @@
+# docs and usage can be found in README.md, in the section named after this file
+"""The paper's tables and plots from local TensorBoard runs.
+
+Reads every run under `--log-dirs` (searched recursively; a run is one `events.out.tfevents.*` file, the scripts write
+one per run), with all points (no TensorBoard subsampling), and groups runs by (task, noise, budget, method) read from
+the logged hyperparameter table: task = `env_id`, method = `exp_name`, budget = `max_feedback` (absent for SAC
+oracles). For every group it writes, as Markdown and CSV, the final return (last `eval/episodic_return`) and the AUC
+(sum of all evaluation returns), mean ± standard error over seeds (SE = sample std (ddof 1) / sqrt(n)), the number of
+seeds and the one-tailed Welch's t-test p-value against a baseline of the same task, noise and budget
+(`scipy.stats.ttest_ind(method, baseline, equal_var=False, alternative="greater")`; `*` where p < 0.05), in the
+layout of the paper's appendix tables. It also writes learning curves per task (mean ± SE, one colour per method) and
+connectivity plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds).
+
+Choices where the paper is silent:
+- A run is used only if it is readable, has a hyperparameter table with `env_id`, `exp_name` and `seed`, has at least
+  one evaluation point, and is finished: its last evaluation step is >= `total_timesteps` (the scripts evaluate at the
+  last step). `--include-unfinished` also uses unfinished runs.
+- Runs of one group must agree on every hyperparameter except the run-specific ones in `RUN_SPECIFIC_KEYS` (seed,
+  exp_name, logging, device and thread settings that do not change the algorithm). The configuration shared by most
+  runs of the group is kept (a tie goes to the configuration of the alphabetically first run); the other runs are
+  skipped as "mismatched settings", naming the differing keys. Two used runs with the same seed in a group: the one
+  with the most evaluation steps is kept (then the most recent folder), the others are skipped as duplicates.
+- Unequal evaluation points within a group (unfinished runs included, a missing point): the group is aligned on the
+  steps present in every one of its runs (with one `eval_freq` this truncates to the shortest run) and a note says
+  so. Final return and AUC are then those of the aligned curves, so every seed of a group covers the same steps.
+  Nothing is interpolated. A method whose comparison settings (`COMPARED_KEYS`) differ from its baseline's is tested
+  anyway, with a note.
+- Skipped runs are listed (path and reason) on stdout, in the Markdown files and in `runs.csv`; they are never
+  averaged.
+- One run per event file, not per folder: the run folder `{env_id}__{exp_name}__{seed}__{unix_time}` does not name
+  noise or budget, so two runs of a sweep started in the same second share it (each writes its own event file, and
+  the checkpoint there is the last writer's). Such runs are used separately, with a note.
+"""
+import csv
+import glob
+import math
+import os
+import re
+import sys
+import warnings
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import tyro
+
+
+@dataclass
+class Args:
+    log_dirs: tuple[str, ...] = ("runs",)
+    """folders searched recursively for TensorBoard runs (`events.out.tfevents.*` files, one per run)"""
+    output_dir: str = "analysis"
+    """where the tables (`final_return.md/.csv`, `auc.md/.csv`, `runs.csv`) and plots (`curves/`, `connectivity/`) go"""
+    baseline: str = "pebble"
+    """the method (exp_name) each method of the same task, noise and budget is tested against"""
+    baseline_for: tuple[str, ...] = ()
+    """per-method baselines overriding `--baseline`, as METHOD=BASELINE; METHOD=METHOD makes it untested (the paper's
+    main table: `r2n_surf=surf r2n_rune=rune surf=surf rune=rune`)"""
+    alternative: Literal["greater", "less"] = "greater"
+    """H1 of the one-tailed Welch's t-test: `greater`: method > baseline; `less`: baseline > method (the paper's
+    sparse-baselines tables, where the baseline R2N-PEBBLE is the one expected to be better)"""
+    significance: float = 0.05
+    """p-values below this get a `*`"""
+    include_unfinished: bool = False
+    """also use runs whose last evaluation step is below `total_timesteps` (groups are then aligned on common steps)"""
+    plots: bool = True
+    """write the PNG learning curves and connectivity plots (`--no-plots`: tables only)"""
+
+
+# Hyperparameters that may differ between the seeds of one group: they name, log or place a run, or change only
+# numerics (device, threads, chunking of the relabelling pass), not the algorithm.
+RUN_SPECIFIC_KEYS = frozenset({
+    "seed", "exp_name", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "threads",
+    "cuda", "torch_deterministic", "log_freq", "relabel_batch_size",
+})
+# Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
+COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
+EVAL_TAG = "eval/episodic_return"
+SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
+PAPER_TASKS = ["cartpole-swingup", "walker-walk", "cheetah-run", "quadruped-walk", "humanoid-stand"]
+PAPER_METHODS = [
+    "sac", "anf_sac", "pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune", "set_pebble", "static_pebble",
+    "l1_pebble", "dropconnect_pebble", "r2n_pebble_reward_only", "r2n_pebble_agent_only",
+]
+
+
+@dataclass
+class Run:
+    """One run: its event file, hyperparameters and scalars (tag -> (steps, values), sorted by step)."""
+
+    path: str
+    hparams: dict = field(default_factory=dict)
+    scalars: dict = field(default_factory=dict)
+    status: str = "used"  # "used" or "skipped"
+    reason: str = ""
+    note: str = ""
+
+    @property
+    def key(self):
+        """The group: (task, noise, budget, method)."""
+        return (self.hparams.get("env_id"), self.hparams.get("noise"), self.hparams.get("max_feedback"),
+                self.hparams.get("exp_name"))
+
+    @property
+    def seed(self):
+        return self.hparams.get("seed")
+
+    @property
+    def folder(self) -> str:
+        return os.path.dirname(self.path)
+
+    @property
+    def eval_steps(self) -> np.ndarray:
+        return self.scalars.get(EVAL_TAG, (np.zeros(0, dtype=np.int64), None))[0]
+
+    def skip(self, reason: str):
+        self.status, self.reason = "skipped", reason
+
+
+@dataclass
+class Group:
+    """The used runs of one (task, noise, budget, method), aligned on their common evaluation steps."""
+
+    key: tuple
+    runs: list
+    steps: np.ndarray = None
+    curves: np.ndarray = None  # (seeds, steps)
+    notes: list = field(default_factory=list)
+
+    @property
+    def final(self) -> np.ndarray:
+        return self.curves[:, -1]
+
+    @property
+    def auc(self) -> np.ndarray:
+        return self.curves.sum(axis=1)
+
+
+# ---------------------------------------------------------------- reading
+
+
+def parse_value(text: str):
+    """A hyperparameter value as the scripts print it (`str()` of a Python value) back to int/float/bool/None/str."""
+    if text in ("None", ""):
+        return None if text == "None" else ""
+    if text in ("True", "False"):
+        return text == "True"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def parse_hparams(text: str) -> dict:
+    """The `|param|value|` Markdown table written by `writer.add_text("hyperparameters", ...)`, as a dict."""
+    hparams = {}
+    for line in text.splitlines():
+        line = line.strip()
+        if not (line.startswith("|") and line.endswith("|")) or len(line) < 2:
+            continue
+        key, sep, value = line[1:-1].partition("|")
+        if not sep or (key, value) in (("param", "value"), ("-", "-")):
+            continue
+        hparams[key.strip()] = parse_value(value.strip())
+    return hparams
+
+
+def find_event_files(log_dirs) -> list:
+    """Every TensorBoard event file under `log_dirs` (recursively), sorted: one per run."""
+    found = set()
+    for root in log_dirs:
+        for path in glob.glob(os.path.join(glob.escape(root), "**", "events.out.tfevents.*"), recursive=True):
+            found.add(os.path.abspath(path))
+    return sorted(found)
+
+
+def read_run(path: str) -> Run:
+    """All scalar points and the hyperparameter table of one event file (raises on unreadable ones)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    accumulator = EventAccumulator(path, size_guidance={"scalars": 0, "tensors": 0})
+    accumulator.Reload()
+    tags = accumulator.Tags()
+    run = Run(path)
+    for tag in tags.get("scalars", []):
+        by_step = {event.step: event.value for event in accumulator.Scalars(tag)}  # a repeated step: the last wins
+        steps = np.array(sorted(by_step), dtype=np.int64)
+        run.scalars[tag] = (steps, np.array([by_step[s] for s in steps], dtype=np.float64))
+    for tag in tags.get("tensors", []):
+        if tag.split("/")[0] == "hyperparameters":
+            values = accumulator.Tensors(tag)[-1].tensor_proto.string_val
+            if values:
+                run.hparams = parse_hparams(values[0].decode("utf-8", "replace"))
+    return run
+
+
+def load_runs(log_dirs, include_unfinished: bool = False) -> list:
+    """Every run found, with `status` "used" or "skipped" and the reason: unreadable, crashed, unfinished."""
+    runs = []
+    files = find_event_files(log_dirs)
+    per_folder = Counter(os.path.dirname(path) for path in files)
+    for path in files:
+        try:
+            run = read_run(path)
+        except Exception as e:  # a truncated or corrupt event file
+            run = Run(path)
+            run.skip(f"unreadable: {type(e).__name__}: {e}")
+            runs.append(run)
+            continue
+        runs.append(run)
+        if per_folder[run.folder] > 1:
+            run.note = (f"shares its folder with {per_folder[run.folder] - 1} other event file(s) (runs started in "
+                        f"the same second; the folder's checkpoint is one of theirs)")
+        missing = [k for k in ("env_id", "exp_name", "seed") if k not in run.hparams]
+        steps = run.eval_steps
+        total = run.hparams.get("total_timesteps")
+        if not run.hparams:
+            run.skip("unreadable: no hyperparameters table")
+        elif missing:
+            run.skip(f"unreadable: hyperparameters table lacks {', '.join(missing)}")
+        elif len(steps) == 0:
+            run.skip(f"crashed: no {EVAL_TAG} point")
+        elif isinstance(total, int) and steps[-1] < total:
+            state = f"unfinished: last evaluation at step {steps[-1]} of total_timesteps {total}"
+            if include_unfinished:
+                run.note = "; ".join(filter(None, [run.note, state + " (included: --include-unfinished)"]))
+            else:
+                run.skip(state + " (still running or died; --include-unfinished uses it)")
+    return runs
+
+
+def config_of(run: Run) -> tuple:
+    """The hyperparameters that must match within a group."""
+    return tuple(sorted((k, repr(v)) for k, v in run.hparams.items() if k not in RUN_SPECIFIC_KEYS))
+
+
+def folder_time(run: Run) -> int:
+    """The unix time at the end of the run folder's name (`{env}__{exp}__{seed}__{time}`), else 0."""
+    tail = os.path.basename(run.folder).rsplit("__", 1)[-1]
+    return int(tail) if tail.isdigit() else 0
+
+
+def make_groups(runs) -> list:
+    """Group the used runs by (task, noise, budget, method), skip mismatched settings and duplicate seeds, align."""
+    by_key = defaultdict(list)
+    for run in runs:
+        if run.status == "used":
+            by_key[run.key].append(run)
+    groups = []
+    for key, members in by_key.items():
+        members.sort(key=lambda r: r.path)
+        configs = Counter(config_of(r) for r in members)
+        first_index = {}
+        for i, r in enumerate(members):
+            first_index.setdefault(config_of(r), i)
+        chosen = max(configs, key=lambda c: (configs[c], -first_index[c]))
+        chosen_dict = dict(chosen)
+        for r in members:
+            config = dict(config_of(r))
+            if config != chosen_dict:
+                diffs = [
+                    f"{k}={config.get(k, '<absent>')} (group: {chosen_dict.get(k, '<absent>')})"
+                    for k in sorted(set(config) | set(chosen_dict)) if config.get(k) != chosen_dict.get(k)
+                ]
+                r.skip("mismatched settings: " + ", ".join(diffs))
+        members = [r for r in members if r.status == "used"]
+        by_seed = defaultdict(list)
+        for r in members:
+            by_seed[r.seed].append(r)
+        for seed, same in by_seed.items():
+            same.sort(key=lambda r: (len(r.eval_steps), folder_time(r), r.path), reverse=True)
+            for r in same[1:]:
+                r.skip(f"duplicate seed {seed} in its group (kept {same[0].path})")
+        members = sorted((r for r in members if r.status == "used"), key=lambda r: (r.seed, r.path))
+        group = Group(key, members)
+        common = members[0].eval_steps
+        for r in members[1:]:
+            common = np.intersect1d(common, r.eval_steps)
+        if len(common) == 0:
+            for r in members:
+                r.skip("no evaluation step in common with the other runs of its group")
+            continue
+        dropped = sum(len(r.eval_steps) - len(common) for r in members)
+        if dropped:
+            group.notes.append(
+                f"aligned on the {len(common)} evaluation steps common to its {len(members)} runs "
+                f"(up to step {common[-1]}; {dropped} points of longer runs left out)"
+            )
+        group.notes.extend(f"{os.path.relpath(r.path, os.path.dirname(r.folder))}: {r.note}" for r in members if r.note)
+        group.steps = common
+        group.curves = np.stack([r.scalars[EVAL_TAG][1][np.searchsorted(r.eval_steps, common)] for r in members])
+        groups.append(group)
+    return groups
+
+
+# ---------------------------------------------------------------- statistics
+
+
+def mean_se(values: np.ndarray):
+    """Mean and standard error (sample std, ddof 1, / sqrt(n)); SE is nan for one seed."""
+    values = np.asarray(values, dtype=np.float64)
+    se = float(values.std(ddof=1) / math.sqrt(len(values))) if len(values) > 1 else float("nan")
+    return float(values.mean()), se
+
+
+def welch_p(a, b, alternative: str = "greater") -> float:
+    """One-tailed Welch's t-test p-value of H1 mean(a) > mean(b) (`greater`) or < (`less`); nan if undefined."""
+    from scipy import stats
+
+    if len(a) < 2 or len(b) < 2:
+        return float("nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return float(stats.ttest_ind(a, b, equal_var=False, alternative=alternative).pvalue)
+
+
+def order_key(task, noise, budget, method, baseline):
+    """Paper's task order, then noise and budget ascending; the baseline first, then the paper's method order."""
+    task_rank = PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS)
+    method_rank = PAPER_METHODS.index(method) if method in PAPER_METHODS else len(PAPER_METHODS)
+    return (task_rank, str(task), -1 if noise is None else noise, -1 if budget is None else budget,
+            method != baseline, method_rank, str(method))
+
+
+def parse_baselines(args: Args) -> dict:
+    overrides = {}
+    for item in args.baseline_for:
+        method, sep, base = item.partition("=")
+        if not sep or not method or not base:
+            raise SystemExit(f"analyze: error: --baseline-for expects METHOD=BASELINE, got {item!r}")
+        overrides[method] = base
+    return overrides
+
+
+def table_rows(groups, args: Args) -> list:
+    """One row per group: the statistics of both tables, against the group's baseline."""
+    overrides = parse_baselines(args)
+    by_key = {g.key: g for g in groups}
+    rows = []
+    for g in groups:
+        task, noise, budget, method = g.key
+        base_name = overrides.get(method, args.baseline)
+        row = dict(task=task, noise=noise, budget=budget, method=method, seeds=len(g.runs),
+                   seed_list=" ".join(str(r.seed) for r in g.runs), last_step=int(g.steps[-1]),
+                   eval_points=len(g.steps), baseline="", notes=list(g.notes))
+        row["final_mean"], row["final_se"] = mean_se(g.final)
+        row["auc_mean"], row["auc_se"] = mean_se(g.auc)
+        row["final_p"] = row["auc_p"] = float("nan")
+        base = by_key.get((task, noise, budget, base_name))
+        if method != base_name:
+            if base is None:
+                row["notes"].append(f"no baseline {base_name} for this task, noise and budget")
+            else:
+                row["baseline"] = base_name
+                row["final_p"] = welch_p(g.final, base.final, args.alternative)
+                row["auc_p"] = welch_p(g.auc, base.auc, args.alternative)
+                differ = [k for k in COMPARED_KEYS
+                          if g.runs[0].hparams.get(k) != base.runs[0].hparams.get(k)]
+                if differ:
+                    row["notes"].append("settings differ from the baseline's: " + ", ".join(
+                        f"{k}={g.runs[0].hparams.get(k)} vs {base.runs[0].hparams.get(k)}" for k in differ))
+                if (len(g.steps), g.steps[-1]) != (len(base.steps), base.steps[-1]):
+                    row["notes"].append(
+                        f"evaluation steps differ from the baseline's ({len(g.steps)} up to {g.steps[-1]} vs "
+                        f"{len(base.steps)} up to {base.steps[-1]}): AUCs are not comparable"
+                    )
+        rows.append(row)
+    rows.sort(key=lambda r: order_key(r["task"], r["noise"], r["budget"], r["method"], args.baseline))
+    return rows
+
+
+# ---------------------------------------------------------------- writing
+
+
+def fmt(value: float, digits: int = 2) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def fmt_p(p: float, significance: float) -> str:
+    return "" if not math.isfinite(p) else f"{p:.3f}" + ("*" if p < significance else "")
+
+
+def setting_label(noise, budget) -> str:
+    return f"{'-' if budget is None else budget} / {'-' if noise is None else noise}"
+
+
+def write_tables(rows, runs, args: Args):
+    """`final_return.md/.csv`, `auc.md/.csv` (the paper's layout) and `runs.csv` (every run found and its status)."""
+    os.makedirs(args.output_dir, exist_ok=True)
+    skipped = [r for r in runs if r.status == "skipped"]
+    h1 = "method > baseline" if args.alternative == "greater" else "baseline > method"
+    for metric, title, definition in (
+        ("final", "Final Return", "the last `eval/episodic_return` of each run"),
+        ("auc", "AUC", "the sum of the evaluation returns of each run"),
+    ):
+        name = "final_return" if metric == "final" else "auc"
+        lines = [
+            f"# {title}", "",
+            f"{title} = {definition}; mean ± standard error over seeds (sample std / sqrt(n)). P Value: one-tailed "
+            f"Welch's t-test against the baseline (`{args.baseline}`"
+            + (f"; {', '.join(args.baseline_for)}" if args.baseline_for else "")
+            + f"), H1: {h1}; * p < {args.significance}.", "",
+            f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds |",
+            "|---|---|---|---|---|---|",
+        ]
+        previous = None
+        for row in rows:
+            cell = (row["task"], row["noise"], row["budget"])
+            first = cell != previous
+            previous = cell
+            p = fmt_p(row[f"{metric}_p"], args.significance)
+            lines.append(
+                f"| {row['task'] if first else ''} | {setting_label(row['noise'], row['budget']) if first else ''} "
+                f"| {row['method']} | {fmt(row[f'{metric}_mean'])} ± {fmt(row[f'{metric}_se'])} | {p} "
+                f"| {row['seeds']} |"
+            )
+        notes = [f"- {r['task']} {setting_label(r['noise'], r['budget'])} {r['method']}: {n}" for r in rows
+                 for n in r["notes"]]
+        if notes:
+            lines += ["", "Notes:", ""] + notes
+        lines += ["", f"Skipped runs ({len(skipped)}; never averaged):", ""]
+        lines += [f"- `{r.path}`: {r.reason}" for r in skipped] or ["- none"]
+        with open(os.path.join(args.output_dir, f"{name}.md"), "w") as f:
+            f.write("\n".join(lines) + "\n")
+        with open(os.path.join(args.output_dir, f"{name}.csv"), "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["task", "noise", "budget", "method", "seeds", "mean", "se", "p_value", "significant",
+                             "baseline", "eval_points", "last_step", "seed_list", "notes"])
+            for row in rows:
+                p = row[f"{metric}_p"]
+                writer.writerow([
+                    row["task"], row["noise"], "" if row["budget"] is None else row["budget"], row["method"],
+                    row["seeds"], repr(row[f"{metric}_mean"]), repr(row[f"{metric}_se"]),
+                    "" if not math.isfinite(p) else repr(p), int(math.isfinite(p) and p < args.significance),
+                    row["baseline"], row["eval_points"], row["last_step"], row["seed_list"], "; ".join(row["notes"]),
+                ])
+    with open(os.path.join(args.output_dir, "runs.csv"), "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["path", "task", "noise", "budget", "method", "seed", "status", "reason", "eval_points",
+                         "last_step", "final_return", "auc"])
+        for r in runs:
+            steps = r.eval_steps
+            values = r.scalars.get(EVAL_TAG, (None, np.zeros(0)))[1]
+            task, noise, budget, method = r.key
+            writer.writerow([
+                r.path, task, noise, budget, method, r.seed, r.status, r.reason or r.note, len(steps),
+                int(steps[-1]) if len(steps) else "", repr(float(values[-1])) if len(values) else "",
+                repr(float(values.sum())) if len(values) else "",
+            ])
+
+
+def aligned(group: Group, tag: str):
+    """(steps, values (seeds, steps)) of one scalar tag over the runs of a group, on the steps common to all."""
+    series = [r.scalars[tag] for r in group.runs]
+    common = series[0][0]
+    for steps, _ in series[1:]:
+        common = np.intersect1d(common, steps)
+    return common, np.stack([values[np.searchsorted(steps, common)] for steps, values in series])
+
+
+def safe_name(text) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", str(text))
+
+
+def write_plots(groups, args: Args) -> list:
+    """Learning curves per task (one panel per noise/budget) and connectivity plots per sparse group; the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    methods = sorted({g.key[3] for g in groups}, key=lambda m: order_key(None, None, None, m, args.baseline)[4:])
+    cmap = plt.get_cmap("tab10" if len(methods) <= 10 else "tab20")
+    colour = {m: cmap(i % cmap.N) for i, m in enumerate(methods)}
+
+    def band(ax, steps, values, label, **style):
+        mean = values.mean(axis=0)
+        line = ax.plot(steps, mean, label=label, **style)[0]
+        if len(values) > 1:
+            se = values.std(axis=0, ddof=1) / math.sqrt(len(values))
+            ax.fill_between(steps, mean - se, mean + se, color=line.get_color(), alpha=0.2, linewidth=0)
+
+    by_task = defaultdict(list)
+    for g in groups:
+        by_task[g.key[0]].append(g)
+    os.makedirs(os.path.join(args.output_dir, "curves"), exist_ok=True)
+    for task, task_groups in by_task.items():
+        settings = sorted({(g.key[1], g.key[2]) for g in task_groups},
+                          key=lambda s: (-1 if s[0] is None else s[0], -1 if s[1] is None else s[1]))
+        ncols = min(3, len(settings))
+        nrows = math.ceil(len(settings) / ncols)
+        fig, axes = plt.subplots(nrows, ncols, figsize=(max(6.0, 5 * ncols), 3.8 * nrows), squeeze=False)
+        for ax, (noise, budget) in zip(axes.flat, settings):
+            for g in sorted((g for g in task_groups if (g.key[1], g.key[2]) == (noise, budget)),
+                            key=lambda g: methods.index(g.key[3])):
+                band(ax, g.steps, g.curves, f"{g.key[3]} (n={len(g.runs)})", color=colour[g.key[3]])
+            ax.set_title(f"noise {noise}, " + ("no feedback" if budget is None else f"budget {budget}"))
+            ax.set_xlabel("environment steps")
+            ax.set_ylabel("evaluation return")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        for ax in list(axes.flat)[len(settings):]:
+            ax.set_visible(False)
+        fig.suptitle(f"{task}: mean ± standard error over seeds")
+        fig.tight_layout()
+        path = os.path.join(args.output_dir, "curves", f"{safe_name(task)}.png")
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+
+    for g in groups:
+        nets = None
+        for r in g.runs:
+            found = {m["net"] for tag in r.scalars if (m := SPARSE_TAG.match(tag))}
+            found = {n for n in found if all(f"sparse/{n}/{k}" in r.scalars for k in ("relevant_degree", "noise_degree"))}
+            nets = found if nets is None else nets & found
+        if not nets:
+            continue
+        nets = sorted(nets, key=lambda n: (not n.startswith(("actor", "qf")), n))
+        ncols = min(3, len(nets))
+        nrows = math.ceil(len(nets) / ncols)
+        fig, axes = plt.subplots(nrows, ncols, figsize=(max(6.0, 4.5 * ncols), 3.4 * nrows + 0.6), squeeze=False)
+        for ax, net in zip(axes.flat, nets):
+            for metric, style in (("relevant_degree", "-"), ("noise_degree", "--")):
+                steps, values = aligned(g, f"sparse/{net}/{metric}")
+                band(ax, steps, values, metric.replace("_", " "), linestyle=style)
+            ax.set_title(net)
+            ax.set_xlabel("environment steps")
+            ax.set_ylabel("active weights per input column")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        for ax in list(axes.flat)[len(nets):]:
+            ax.set_visible(False)
+        task, noise, budget, method = g.key
+        fig.suptitle(f"{method} on {task}, noise {noise}, budget {budget}\n"
+                     f"input-layer connectivity, mean ± SE over {len(g.runs)} seeds", fontsize=10)
+        fig.tight_layout()
+        os.makedirs(os.path.join(args.output_dir, "connectivity"), exist_ok=True)
+        path = os.path.join(args.output_dir, "connectivity",
+                            safe_name(f"{task}__noise{noise}__budget{budget}__{method}") + ".png")
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def main(args: Args) -> int:
+    missing = [d for d in args.log_dirs if not os.path.isdir(d)]
+    for d in missing:
+        print(f"analyze: warning: {d} is not a folder", file=sys.stderr)
+    runs = load_runs(args.log_dirs, args.include_unfinished)
+    if not runs:
+        print(f"analyze: error: no TensorBoard run under {', '.join(args.log_dirs)}", file=sys.stderr)
+        return 1
+    groups = make_groups(runs)
+    skipped = [r for r in runs if r.status == "skipped"]
+    print(f"{len(runs)} runs found, {len(runs) - len(skipped)} used in {len(groups)} groups, {len(skipped)} skipped")
+    for r in skipped:
+        print(f"skipped {r.path}: {r.reason}")
+    if not groups:
+        print("analyze: error: no usable run", file=sys.stderr)
+        return 1
+    rows = table_rows(groups, args)
+    write_tables(rows, runs, args)
+    written = [os.path.join(args.output_dir, f) for f in ("final_return.md", "final_return.csv", "auc.md", "auc.csv",
+                                                           "runs.csv")]
+    if args.plots:
+        written += write_plots(groups, args)
+    with open(os.path.join(args.output_dir, "final_return.md")) as f:
+        print(f.read().split("\n\nNotes:")[0].split("\n\nSkipped runs")[0])
+    print("wrote " + ", ".join(written))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(tyro.cli(Args)))

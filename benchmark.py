@@ -1,0 +1,487 @@
+# docs and usage can be found in README.md, in the section named after this file
+"""Launch the paper's experiments: a grid of (method, task, noise, budget, seed) runs, locally or on SLURM.
+
+Presets (`--preset`) are the paper's experiments (ALGORITHMS.md section 6); `--methods`, `--env-ids`, `--noises`,
+`--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid. Each run has a
+deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
+`python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...` plus
+`--extra`, so `analyze.py` groups its TensorBoard run by the method name.
+
+Choices where the issue is silent:
+- Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
+- A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
+  with code 0 (a failure writes `{run_id}.failed` with the exit code instead). Finished runs are skipped by the next
+  call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
+  is cheap, exact, and works for runs whose folder name carries only env, method, seed and time.
+- Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
+  out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
+  `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
+- SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
+  GPU (SLURM sets `CUDA_VISIBLE_DEVICES`), with `--slurm-mem-gb` per run. It returns after submission unless
+  `--slurm-wait`. A run killed at the time limit has no marker and is resubmitted by the next call (runs restart
+  from scratch: the scripts do not resume).
+- Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
+  in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
+- Run folders: the scripts name theirs `runs/{env_id}__{exp_name}__{seed}__{unix_time}`, without noise or budget, so
+  two runs of a sweep that differ only there would share a folder if started in the same second. Runs of one call
+  that share (env, method, seed) are therefore started one at a time: under a lock file
+  `{log_dir}/{env_id}__{method}__{seed}.lock` (shared by the jobs of a SLURM array), the launcher waits until the new
+  run's folder exists and its second has passed before it starts the next one (at most `START_TIMEOUT_S`).
+"""
+import glob
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, Optional
+
+import tyro
+
+ROOT = os.path.dirname(os.path.abspath(__file__))
+
+# The paper's main table: task -> (noise, feedback budget).
+PAPER_SETTINGS = {
+    "cartpole-swingup": (0.9, 400),
+    "walker-walk": (0.9, 4000),
+    "cheetah-run": (0.9, 1000),
+    "quadruped-walk": (0.7, 4000),
+    "humanoid-stand": (0.7, 10000),
+}
+# Method names that are a script with extra flags (the DST ablation); any other method runs `{method}.py`.
+VARIANTS = {
+    "r2n_pebble_reward_only": ("r2n_pebble.py", ("--no-sparse-agent",)),
+    "r2n_pebble_agent_only": ("r2n_pebble.py", ("--no-sparse-reward",)),
+}
+# SAC oracles: trained on the true reward, no feedback budget.
+NO_FEEDBACK = frozenset({"sac", "anf_sac"})
+# Waiting for a run's folder (see "Run folders" above): give up after this long; a lock this old is stale.
+START_TIMEOUT_S = 600
+STALE_LOCK_S = 900
+
+
+class Preset(NamedTuple):
+    settings: tuple  # (env_id, noise, budget) triples
+    methods: tuple
+    seeds: tuple
+
+
+MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
+PRESETS = {
+    # the main table: 5 tasks x 6 methods x 14 seeds = 420 runs
+    "main": Preset(MAIN_SETTINGS, ("pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune"), tuple(range(1, 15))),
+    # R2N against the sparse-training baselines: 5 tasks x 5 methods x 5 seeds = 125 runs
+    "sparse-baselines": Preset(
+        MAIN_SETTINGS, ("r2n_pebble", "set_pebble", "static_pebble", "l1_pebble", "dropconnect_pebble"), tuple(range(1, 6))
+    ),
+    # cheetah-run, noise sweep at budget 1000: 6 x 2 x 5 = 60 runs
+    "noise-sweep": Preset(
+        tuple(("cheetah-run", noise, 1000) for noise in (0.0, 0.2, 0.5, 0.7, 0.9, 0.95)), ("pebble", "r2n_pebble"),
+        tuple(range(1, 6)),
+    ),
+    # cheetah-run, budget sweep at noise 0.9: 7 x 2 x 5 = 70 runs
+    "feedback-sweep": Preset(
+        tuple(("cheetah-run", 0.9, budget) for budget in (100, 200, 400, 1000, 2000, 4000, 10000)),
+        ("pebble", "r2n_pebble"), tuple(range(1, 6)),
+    ),
+    # cheetah-run 0.9/1000: full R2N, sparse reward models only, sparse actor/critics only: 3 x 5 = 15 runs
+    "dst-ablation": Preset(
+        (("cheetah-run", 0.9, 1000),), ("r2n_pebble", "r2n_pebble_reward_only", "r2n_pebble_agent_only"),
+        tuple(range(1, 6)),
+    ),
+}
+
+
+@dataclass
+class Args:
+    preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation"]] = None
+    """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
+    (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
+    r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds)"""
+    methods: Optional[tuple[str, ...]] = None
+    """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
+    `r2n_pebble_agent_only`); replaces the preset's"""
+    env_ids: Optional[tuple[str, ...]] = None
+    """tasks; with a preset, keeps only these (a paper task outside it gets the main table's noise and budget)"""
+    noises: Optional[tuple[float, ...]] = None
+    """noise fractions; replace the preset's (default for a paper task without preset: its main-table noise)"""
+    budgets: Optional[tuple[int, ...]] = None
+    """feedback budgets (`--max-feedback`); replace the preset's (default: the main-table budget of the task)"""
+    seeds: Optional[tuple[int, ...]] = None
+    """seeds; replace the preset's (default without a preset: 1)"""
+    extra: str = ""
+    """flags appended to every command, e.g. `--extra "--total-timesteps 500000 --cuda"`"""
+    dry_run: bool = False
+    """print the commands (and which runs are already finished) and exit"""
+    force: bool = False
+    """also rerun runs whose `.done` marker exists"""
+    backend: Literal["local", "slurm"] = "local"
+    """`local`: a process pool on this machine; `slurm`: one submitit job array"""
+    workers: Optional[int] = None
+    """local: runs at the same time (default and maximum with `--gpus`: the number of GPU slots; else default 1)"""
+    gpus: Optional[str] = None
+    """local: GPUs to use, e.g. `0,1,2,3` (CUDA_VISIBLE_DEVICES of each run, round-robin); unset: left alone"""
+    runs_per_gpu: int = 1
+    """runs sharing one GPU (local: slots per GPU; slurm: runs packed into one GPU job)"""
+    threads: int = 1
+    """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""
+    log_dir: str = "logs"
+    """per-run logs `{run_id}.log` and markers `{run_id}.done` / `{run_id}.failed`"""
+    script_dir: str = ROOT
+    """folder holding the scripts"""
+    python: str = sys.executable
+    """the Python interpreter that runs the scripts"""
+    slurm_partition: Optional[str] = None
+    """slurm: partition (`--partition`)"""
+    slurm_account: Optional[str] = None
+    """slurm: account (`--account`)"""
+    slurm_time: int = 2880
+    """slurm: time limit per job in minutes (the paper reports 20-24 GPU-hours per R2N seed)"""
+    slurm_mem_gb: int = 50
+    """slurm: memory per run in GB; a job asks `--runs-per-gpu` times this (the paper reports 25-50 GB per seed)"""
+    slurm_gpus: int = 1
+    """slurm: GPUs per job"""
+    slurm_cpus_per_task: Optional[int] = None
+    """slurm: CPUs per job (default: `--runs-per-gpu` x `--threads`)"""
+    slurm_array_parallelism: int = 256
+    """slurm: at most this many array tasks at once"""
+    slurm_extra: tuple[str, ...] = ()
+    """slurm: further `#SBATCH` settings as KEY=VALUE (e.g. `constraint=a100 qos=normal`)"""
+    slurm_folder: str = "slurm"
+    """slurm: submitit's folder (job scripts, pickles, SLURM stdout/stderr)"""
+    slurm_cluster: Literal["slurm", "local", "debug"] = "slurm"
+    """slurm: submitit executor; `local` and `debug` run the same job functions on this machine (for tests)"""
+    slurm_wait: bool = False
+    """slurm: wait for the jobs and report every failed run (default: return after submission)"""
+
+
+@dataclass(frozen=True)
+class Run:
+    """One run of the grid: its id, what it is, and its command."""
+
+    run_id: str
+    method: str
+    env_id: str
+    noise: float
+    budget: Optional[int]
+    seed: int
+    command: tuple
+
+
+def fail(message: str):
+    raise SystemExit(f"benchmark: error: {message}")
+
+
+def grid(args: Args) -> tuple:
+    """(settings, methods, seeds) of the preset with the flags' replacements applied."""
+    preset = PRESETS[args.preset] if args.preset else None
+    methods = tuple(args.methods or (preset.methods if preset else ()))
+    seeds = tuple(args.seeds or (preset.seeds if preset else (1,)))
+    if not methods:
+        fail("give --preset or --methods")
+    if preset and not args.env_ids:
+        settings = list(preset.settings)
+    elif not args.env_ids:
+        fail("give --preset or --env-ids")
+    else:
+        settings = [s for s in preset.settings if s[0] in args.env_ids] if preset else []
+        for env in args.env_ids:
+            if any(s[0] == env for s in settings):
+                continue
+            noise, budget = PAPER_SETTINGS.get(env, (None, None))
+            if (noise is None and not args.noises) or (budget is None and not args.budgets):
+                fail(f"{env} is not a paper task: give --noises and --budgets")
+            settings.append((env, noise, budget))
+    if args.noises:
+        settings = [(env, noise, budget) for env, _, budget in settings for noise in args.noises]
+    if args.budgets:
+        settings = [(env, noise, budget) for env, noise, _ in settings for budget in args.budgets]
+    return list(dict.fromkeys(settings)), methods, seeds
+
+
+def script_of(method: str, script_dir: str) -> tuple:
+    """(script path, extra flags) of a method."""
+    script, flags = VARIANTS.get(method, (f"{method}.py", ()))
+    path = os.path.abspath(os.path.join(script_dir, script))
+    if not os.path.isfile(path):
+        fail(f"method {method}: no script {path}")
+    return path, flags
+
+
+def expand(args: Args) -> list:
+    """The runs of the grid, seed-major, deduplicated by run id."""
+    settings, methods, seeds = grid(args)
+    scripts = {m: script_of(m, args.script_dir) for m in methods}
+    extra = tuple(shlex.split(args.extra))
+    runs = {}
+    for seed in seeds:
+        for env, noise, budget in settings:
+            for method in methods:
+                budget_m = None if method in NO_FEEDBACK else budget
+                run_id = f"{method}__{env}__noise{noise:g}__budget{'none' if budget_m is None else budget_m}__seed{seed}"
+                script, flags = scripts[method]
+                command = (args.python, script, "--exp-name", method, "--env-id", env, "--noise", f"{noise:g}")
+                if budget_m is not None:
+                    command += ("--max-feedback", str(budget_m))
+                command += ("--seed", str(seed), "--threads", str(args.threads)) + tuple(flags) + extra
+                runs.setdefault(run_id, Run(run_id, method, env, noise, budget_m, seed, command))
+    return list(runs.values())
+
+
+def marker(log_dir: str, run_id: str, kind: str) -> str:
+    return os.path.join(log_dir, f"{run_id}.{kind}")
+
+
+# ---------------------------------------------------------------- running one run (shared by both back-ends)
+
+
+def acquire(lock: str) -> None:
+    """Create `lock` exclusively (works across the jobs of an array on a shared file system); wait while it exists."""
+    while True:
+        try:
+            os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            return
+        except FileExistsError:
+            try:
+                if time.time() - os.path.getmtime(lock) > STALE_LOCK_S:  # its holder died
+                    os.remove(lock)
+            except FileNotFoundError:
+                pass
+            time.sleep(0.2)
+
+
+def start_run(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
+    """Start one run (one at a time per shared run folder, see "Run folders" above) and return its process."""
+    if not spec["serialize"]:
+        return launch(spec, gpu)
+    acquire(spec["lock"])
+    try:
+        before = set(glob.glob(spec["folders"]))
+        process = launch(spec, gpu)
+        deadline = time.time() + START_TIMEOUT_S
+        while time.time() < deadline and process.poll() is None:
+            new = [int(p.rsplit("__", 1)[1]) for p in set(glob.glob(spec["folders"])) - before
+                   if p.rsplit("__", 1)[1].isdigit()]
+            if new:  # its folder exists; the next run must get a later second
+                time.sleep(max(0.0, max(new) + 1 - time.time()))
+                break
+            time.sleep(0.1)
+        return process
+    finally:
+        try:
+            os.remove(spec["lock"])
+        except FileNotFoundError:  # broken as stale by another job (only after STALE_LOCK_S)
+            pass
+
+
+def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
+    """Start one run: clear its markers, open its log (header: command, GPU, start time), return the process."""
+    for kind in ("done", "failed"):
+        if os.path.exists(spec["log"][:-4] + "." + kind):
+            os.remove(spec["log"][:-4] + "." + kind)
+    env = dict(os.environ, OMP_NUM_THREADS=str(spec["threads"]), MKL_NUM_THREADS=str(spec["threads"]),
+               PYTHONUNBUFFERED="1")
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = str(gpu)
+    with open(spec["log"], "w") as log:
+        log.write(f"# run {spec['run_id']}\n# command: {shlex.join(spec['command'])}\n"
+                  f"# cwd: {spec['cwd']}\n# CUDA_VISIBLE_DEVICES={env.get('CUDA_VISIBLE_DEVICES', '(unset)')} "
+                  f"OMP_NUM_THREADS={spec['threads']}\n# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        log.flush()
+        process = subprocess.Popen(spec["command"], cwd=spec["cwd"], env=env, stdout=log, stderr=subprocess.STDOUT,
+                                   stdin=subprocess.DEVNULL)
+    process.started = time.time()
+    return process
+
+
+def finish_run(spec: dict, returncode: int, seconds: float) -> None:
+    """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker."""
+    with open(spec["log"], "a") as log:
+        log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
+    kind = "done" if returncode == 0 else "failed"
+    with open(spec["log"][:-4] + "." + kind, "w") as f:
+        f.write(f"exit code {returncode}\nseconds {seconds:.0f}\ncommand {shlex.join(spec['command'])}\n")
+
+
+def run_group(specs: list) -> list:
+    """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)]."""
+    processes = [(spec, start_run(spec)) for spec in specs]
+    results = []
+    for spec, process in processes:
+        returncode = process.wait()
+        finish_run(spec, returncode, time.time() - process.started)
+        results.append((spec["run_id"], returncode, spec["log"]))
+    return results
+
+
+def folder_key(run: Run) -> str:
+    """The part of the scripts' run folder name that a run shares with runs of other noise or budget."""
+    return f"{run.env_id}__{run.method}__{run.seed}"
+
+
+def spec_of(run: Run, args: Args, serialize: bool = False) -> dict:
+    """What a job needs to know about a run (plain data: it travels to SLURM jobs)."""
+    return dict(run_id=run.run_id, command=list(run.command), cwd=os.getcwd(), threads=args.threads,
+                log=os.path.abspath(marker(args.log_dir, run.run_id, "log")), serialize=serialize,
+                folders=os.path.join(glob.escape(os.path.abspath("runs")), glob.escape(folder_key(run)) + "__*"),
+                lock=os.path.abspath(os.path.join(args.log_dir, folder_key(run) + ".lock")))
+
+
+def shared_folder_keys(runs: list) -> set:
+    """Folder keys of the runs that could share a run folder (same env, method and seed)."""
+    return {key for key, n in Counter(folder_key(run) for run in runs).items() if n > 1}
+
+
+def describe(returncode: int) -> str:
+    if returncode < 0:
+        try:
+            return f"exit code {returncode} (killed by {signal.Signals(-returncode).name})"
+        except ValueError:
+            return f"exit code {returncode}"
+    return f"exit code {returncode}"
+
+
+# ---------------------------------------------------------------- back-ends
+
+
+def run_local(runs: list, args: Args) -> list:
+    """A pool of at most `workers` processes; GPU slots round-robin. Returns [(run_id, exit code, log)]."""
+    gpus = [g.strip() for g in args.gpus.split(",") if g.strip()] if args.gpus else []
+    slots = deque(g for _ in range(args.runs_per_gpu) for g in gpus) if gpus else None
+    workers = args.workers or (len(slots) if slots else 1)
+    if slots is not None:
+        workers = min(workers, len(slots))
+    pending, active, results = deque(runs), {}, []
+    shared = shared_folder_keys(runs)
+    print(f"running {len(runs)} runs, {workers} at a time" + (f" on GPUs {','.join(gpus)} "
+          f"({args.runs_per_gpu} per GPU)" if gpus else ""), flush=True)
+    try:
+        while pending or active:
+            while pending and len(active) < workers:
+                run, gpu = pending.popleft(), slots.popleft() if slots is not None else None
+                spec = spec_of(run, args, folder_key(run) in shared)
+                active[run.run_id] = (spec, start_run(spec, gpu), gpu)
+                print(f"started {run.run_id}" + ("" if gpu is None else f" on GPU {gpu}") + f" -> {spec['log']}",
+                      flush=True)
+            time.sleep(0.05)
+            for run_id, (spec, process, gpu) in list(active.items()):
+                returncode = process.poll()
+                if returncode is None:
+                    continue
+                seconds = time.time() - process.started
+                finish_run(spec, returncode, seconds)
+                results.append((run_id, returncode, spec["log"]))
+                del active[run_id]
+                if slots is not None:
+                    slots.append(gpu)
+                print(f"{'finished' if returncode == 0 else 'FAILED'} {run_id} ({describe(returncode)}, {seconds:.0f} s)",
+                      flush=True)
+    except KeyboardInterrupt:
+        for run_id, (spec, process, _) in active.items():
+            process.terminate()
+            returncode = process.wait()
+            finish_run(spec, returncode, time.time() - process.started)
+            results.append((run_id, returncode, spec["log"]))
+        results += [(run.run_id, "not started (interrupted)", "") for run in pending]
+        print("interrupted: running runs terminated", flush=True)
+    return results
+
+
+def make_executor(args: Args):
+    """The submitit executor of one job: `--slurm-*` settings, memory and CPUs for `--runs-per-gpu` runs."""
+    import submitit
+
+    extra = {}
+    for item in args.slurm_extra:
+        key, sep, value = item.partition("=")
+        if not sep:
+            fail(f"--slurm-extra expects KEY=VALUE, got {item!r}")
+        extra[key] = value
+    if args.slurm_account:
+        extra["account"] = args.slurm_account
+    executor = submitit.AutoExecutor(folder=args.slurm_folder, cluster=args.slurm_cluster)
+    k = args.runs_per_gpu
+    executor.update_parameters(
+        name="r2n", timeout_min=args.slurm_time, gpus_per_node=args.slurm_gpus, mem_gb=args.slurm_mem_gb * k,
+        cpus_per_task=args.slurm_cpus_per_task or k * args.threads, nodes=1, tasks_per_node=1,
+        slurm_partition=args.slurm_partition, slurm_array_parallelism=args.slurm_array_parallelism,
+        slurm_additional_parameters=extra or None,
+    )
+    return executor
+
+
+def run_slurm(runs: list, args: Args) -> Optional[list]:
+    """One submitit job array, `runs_per_gpu` runs per task. Returns the results with `--slurm-wait`, else None."""
+    try:
+        import submitit  # noqa: F401  (checked here, used in make_executor)
+    except ImportError:
+        fail("the SLURM back-end needs submitit: pip install -e '.[slurm]'")
+    if __name__ != "__main__":  # imported (tests): ship this module's functions by value, jobs need not import it
+        import cloudpickle
+
+        cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    k = args.runs_per_gpu
+    shared = shared_folder_keys(runs)
+    specs = [spec_of(run, args, folder_key(run) in shared) for run in runs]
+    chunks = [specs[i:i + k] for i in range(0, len(specs), k)]
+    executor = make_executor(args)
+    jobs = executor.map_array(run_group, chunks)
+    print(f"submitted {len(runs)} runs as {len(jobs)} array tasks ({k} per GPU job): job ids "
+          f"{jobs[0].job_id} .. {jobs[-1].job_id}; submitit files in {args.slurm_folder}/", flush=True)
+    for job, chunk in zip(jobs, chunks):
+        print(f"  {job.job_id}: {', '.join(spec['run_id'] for spec in chunk)}")
+    if not args.slurm_wait:
+        print(f"logs in {args.log_dir}/; rerun the same command when the jobs have ended to submit what did not "
+              f"finish (see `--dry-run`)")
+        return None
+    results = []
+    for job, chunk in zip(jobs, chunks):
+        try:
+            results += job.result()
+        except Exception as e:  # the job itself died (time limit, node failure, out of memory)
+            first_line = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            results += [(spec["run_id"], f"job {job.job_id} failed: {first_line}", spec["log"]) for spec in chunk]
+    return results
+
+
+def main(args: Args) -> int:
+    if args.runs_per_gpu < 1 or args.threads < 1 or (args.workers is not None and args.workers < 1):
+        fail("--runs-per-gpu, --threads and --workers must be >= 1")
+    runs = expand(args)
+    done = [] if args.force else [r for r in runs if os.path.exists(marker(args.log_dir, r.run_id, "done"))]
+    done_ids = {r.run_id for r in done}
+    todo = [r for r in runs if r.run_id not in done_ids]
+    if args.dry_run:
+        for run in runs:
+            if run.run_id in done_ids:
+                print(f"# done: {run.run_id}")
+                continue
+            failed = marker(args.log_dir, run.run_id, "failed")
+            if os.path.exists(failed):
+                with open(failed) as f:
+                    print(f"# previously failed ({f.readline().strip()}, log {marker(args.log_dir, run.run_id, 'log')})")
+            print(shlex.join(run.command))
+        print(f"# {len(runs)} runs, {len(done)} already finished, {len(todo)} to run")
+        return 0
+    os.makedirs(args.log_dir, exist_ok=True)
+    if done:
+        print(f"skipping {len(done)} finished runs (markers in {args.log_dir}/; --force reruns them)")
+    if not todo:
+        print("nothing to run")
+        return 0
+    results = run_local(todo, args) if args.backend == "local" else run_slurm(todo, args)
+    if results is None:
+        return 0
+    failures = [(run_id, code, log) for run_id, code, log in results if code != 0]
+    print(f"{len(results) - len(failures)} runs finished, {len(done)} skipped as already finished, "
+          f"{len(failures)} failed")
+    for run_id, code, log in failures:
+        print(f"FAILED {run_id}: {describe(code) if isinstance(code, int) else code}, log {log or '-'}")
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(tyro.cli(Args)))

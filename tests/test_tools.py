@@ -1,0 +1,480 @@
+"""The tools: `analyze.py` on synthetic TensorBoard runs (numbers checked against numpy/scipy), and `benchmark.py`:
+preset grids, the local back-end (parallel fake runs, GPU slots, resume, failures, one real tiny pebble.py run) and
+the SLURM back-end through submitit (local executor; a fake `sbatch` for the job script)."""
+import csv
+import importlib.util
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from torch.utils.tensorboard import SummaryWriter
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from test_scripts import ROOT, TINY  # noqa: E402
+
+import analyze  # noqa: E402
+import benchmark  # noqa: E402
+
+needs_analysis = pytest.mark.skipif(
+    not all(importlib.util.find_spec(m) for m in ("scipy", "matplotlib")), reason="needs the `analysis` extra"
+)
+needs_submitit = pytest.mark.skipif(importlib.util.find_spec("submitit") is None, reason="needs the `slurm` extra")
+STEPS = [1000, 2000, 3000, 4000, 5000]
+
+
+def welch(a, b, alternative="greater"):
+    """The p-value computed here, independently of analyze.py."""
+    from scipy import stats
+
+    return stats.ttest_ind(a, b, equal_var=False, alternative=alternative).pvalue
+BASE_HPARAMS = dict(exp_name=None, seed=None, torch_deterministic=True, cuda=True, track=False, wandb_entity=None,
+                    threads=None, env_id=None, noise=None, noise_type="gaussian", noise_histograms=None,
+                    total_timesteps=5000, batch_size=1024, max_feedback=None, reward_lr=0.003, eval_freq=1000)
+
+
+def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, **overrides):
+    """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags)."""
+    hparams = dict(BASE_HPARAMS, exp_name=method, seed=seed, env_id=env_id, noise=noise, max_feedback=budget)
+    hparams.update(overrides)
+    path = os.path.join(root, f"{env_id}__{method}__{seed}__{stamp}")
+    writer = SummaryWriter(path)
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % ("\n".join(f"|{k}|{v}|" for k, v in hparams.items())))
+    writer.add_scalar("charts/episodic_return", 1.0, 100)
+    for i, (step, value) in enumerate(zip(steps, returns)):
+        writer.add_scalar("eval/episodic_return", value, step)
+        if sparse:
+            for net in ("actor", "reward0"):
+                writer.add_scalar(f"sparse/{net}/relevant_degree", 10 + i + seed, step)
+                writer.add_scalar(f"sparse/{net}/noise_degree", 10 - i, step)
+                writer.add_scalar(f"sparse/{net}/relevant_active_frac", 0.5, step)
+    writer.close()
+    return path
+
+
+def values(rng, n, offset):
+    """Returns exactly representable in float32 (TensorBoard stores float32), so sums are exact too."""
+    return (rng.integers(0, 400, size=n) + offset * 4) / 4.0
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """Two tasks x two methods, unequal seed counts, a crashed, an unfinished, a mismatched and a duplicate run."""
+    root = tmp_path_factory.mktemp("tb")
+    runs_a, runs_b = root / "runs_a", root / "runs_b"  # two folders, as from two machines
+    rng = np.random.default_rng(0)
+    data = {}
+    layout = {  # task -> (noise, budget, {method: (seeds, offset)})
+        "cheetah-run": (0.9, 1000, {"pebble": ([1, 2, 3], 0), "r2n_pebble": ([1, 2, 3, 4], 150)}),  # clear gap
+        "walker-walk": (0.9, 4000, {"pebble": ([1, 2, 3], 150), "r2n_pebble": ([1, 2, 3], 0)}),  # worse: p near 1
+    }
+    for task, (noise, budget, methods) in layout.items():
+        for method, (seeds, offset) in methods.items():
+            for seed in seeds:
+                returns = values(rng, len(STEPS), offset)
+                data[(task, method, seed)] = returns
+                folder = runs_a if seed % 2 else runs_b
+                write_run(str(folder), task, noise, budget, method, seed, returns, sparse=method == "r2n_pebble")
+    bad = {
+        "crashed": write_run(str(runs_a), "cheetah-run", 0.9, 1000, "r2n_pebble", 9, [], stamp=101),
+        "unfinished": write_run(str(runs_a), "cheetah-run", 0.9, 1000, "pebble", 8, [1.0, 2.0, 3.0], stamp=102),
+        "mismatched": write_run(str(runs_b), "walker-walk", 0.9, 4000, "r2n_pebble", 7, [5.0] * 5, stamp=103,
+                                batch_size=256),
+        # seed 1 again, older folder, same length: the newer (stamp 100) is kept
+        "duplicate": write_run(str(runs_b), "walker-walk", 0.9, 4000, "pebble", 1, [9.0] * 5, stamp=50),
+    }
+    os.makedirs(runs_b / "garbage")
+    (runs_b / "garbage" / "events.out.tfevents.0.garbage").write_bytes(b"not an event file at all")
+    bad["unreadable"] = str(runs_b / "garbage")
+    out = root / "out"
+    code = analyze.main(analyze.Args(log_dirs=(str(runs_a), str(runs_b)), output_dir=str(out)))
+    assert code == 0
+    return dict(root=root, dirs=(str(runs_a), str(runs_b)), data=data, bad=bad, out=out, layout=layout)
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def expected_stats(data, task, method, seeds, n_steps=len(STEPS)):
+    finals = np.array([data[(task, method, s)][n_steps - 1] for s in seeds])
+    aucs = np.array([data[(task, method, s)][:n_steps].sum() for s in seeds])
+    return finals, aucs
+
+
+def se(x):
+    return np.std(x, ddof=1) / np.sqrt(len(x))
+
+
+def test_parse_hparams_reads_the_scripts_table():
+    text = "|param|value|\n|-|-|\n|exp_name|r2n_pebble|\n|seed|3|\n|noise|0.9|\n|cuda|True|\n|wandb_entity|None|\n" \
+           "|reward_lr|0.003|\n|alpha_lr|1e-05|\n|noise_histograms|h.npz|"
+    assert analyze.parse_hparams(text) == dict(exp_name="r2n_pebble", seed=3, noise=0.9, cuda=True, wandb_entity=None,
+                                               reward_lr=0.003, alpha_lr=1e-5, noise_histograms="h.npz")
+
+
+@needs_analysis
+def test_tables_match_independent_statistics(synthetic):
+    data, out = synthetic["data"], synthetic["out"]
+    final_rows = {(r["task"], r["method"]): r for r in read_csv(out / "final_return.csv")}
+    auc_rows = {(r["task"], r["method"]): r for r in read_csv(out / "auc.csv")}
+    assert set(final_rows) == set(auc_rows) == {(t, m) for t in ("cheetah-run", "walker-walk")
+                                                 for m in ("pebble", "r2n_pebble")}
+    for task, (noise, budget, methods) in synthetic["layout"].items():
+        base_final, base_auc = expected_stats(data, task, "pebble", methods["pebble"][0])
+        for method, (seeds, _) in methods.items():
+            finals, aucs = expected_stats(data, task, method, seeds)
+            for rows, x, base in ((final_rows, finals, base_final), (auc_rows, aucs, base_auc)):
+                row = rows[(task, method)]
+                assert (float(row["noise"]), int(row["budget"]), int(row["seeds"])) == (noise, budget, len(seeds))
+                assert row["seed_list"] == " ".join(map(str, seeds))
+                assert float(row["mean"]) == pytest.approx(x.mean(), rel=1e-12)
+                assert float(row["se"]) == pytest.approx(se(x), rel=1e-12)
+                if method == "pebble":
+                    assert row["p_value"] == "" and row["baseline"] == ""
+                else:
+                    p = welch(x, base)
+                    assert float(row["p_value"]) == pytest.approx(p, rel=1e-9)
+                    assert row["significant"] == str(int(p < 0.05)) and row["baseline"] == "pebble"
+    # R2N is clearly better on cheetah-run and clearly worse on walker-walk
+    assert final_rows[("cheetah-run", "r2n_pebble")]["significant"] == "1"
+    assert auc_rows[("walker-walk", "r2n_pebble")]["significant"] == "0"
+    assert float(auc_rows[("walker-walk", "r2n_pebble")]["p_value"]) > 0.9
+
+
+@needs_analysis
+def test_markdown_has_the_paper_layout(synthetic):
+    data, out = synthetic["data"], synthetic["out"]
+    text = (out / "final_return.md").read_text()
+    assert "| Task | Feedback / Noise | Method | Final Return | P Value | Seeds |" in text
+    finals, _ = expected_stats(data, "cheetah-run", "r2n_pebble", [1, 2, 3, 4])
+    base, _ = expected_stats(data, "cheetah-run", "pebble", [1, 2, 3])
+    p = welch(finals, base)
+    lines = text.splitlines()
+    i = lines.index(f"| cheetah-run | 1000 / 0.9 | pebble | {base.mean():.2f} ± {se(base):.2f} |  | 3 |")
+    assert lines[i + 1] == f"|  |  | r2n_pebble | {finals.mean():.2f} ± {se(finals):.2f} | {p:.3f}* | 4 |"
+    walker = [line for line in lines if line.startswith("| walker-walk | 4000 / 0.9 | pebble | ")]
+    assert len(walker) == 1 and lines[lines.index(walker[0]) + 1].startswith("|  |  | r2n_pebble | ")
+    assert lines.index(walker[0]) < i  # the paper's task order: walker-walk before cheetah-run
+    assert "| AUC | P Value | Seeds |" in (out / "auc.md").read_text()
+
+
+@needs_analysis
+def test_skipped_runs_are_reported_not_averaged(synthetic):
+    out, bad = synthetic["out"], synthetic["bad"]
+    runs = {os.path.dirname(r["path"]): r for r in read_csv(out / "runs.csv")}  # one event file per folder here
+    expected = {"crashed": "crashed: no eval/episodic_return point", "unfinished": "unfinished: last evaluation at step 3000",
+                "mismatched": "mismatched settings: batch_size=256 (group: 1024)", "duplicate": "duplicate seed 1",
+                "unreadable": "unreadable"}
+    markdown = (out / "final_return.md").read_text()
+    for kind, reason in expected.items():
+        row = runs[os.path.abspath(bad[kind])]
+        assert row["status"] == "skipped" and row["reason"].startswith(reason), (kind, row)
+        assert f"`{row['path']}`: {reason}" in markdown
+    assert sum(r["status"] == "used" for r in runs.values()) == 13
+    assert "Skipped runs (5; never averaged)" in markdown
+
+
+@needs_analysis
+def test_unfinished_runs_align_on_common_steps(synthetic, tmp_path):
+    """--include-unfinished: the unfinished seed joins its group, which is truncated to the steps all runs have."""
+    data, bad = synthetic["data"], synthetic["bad"]
+    code = analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path), include_unfinished=True,
+                                     plots=False))
+    assert code == 0
+    rows = {(r["task"], r["method"]): r for r in read_csv(tmp_path / "final_return.csv")}
+    auc_rows = {(r["task"], r["method"]): r for r in read_csv(tmp_path / "auc.csv")}
+    row = rows[("cheetah-run", "pebble")]
+    assert (row["seeds"], row["eval_points"], row["last_step"], row["seed_list"]) == ("4", "3", "3000", "1 2 3 8")
+    assert "aligned on the 3 evaluation steps common to its 4 runs" in row["notes"]
+    finals = np.array([data[("cheetah-run", "pebble", s)][2] for s in (1, 2, 3)] + [3.0])
+    aucs = np.array([data[("cheetah-run", "pebble", s)][:3].sum() for s in (1, 2, 3)] + [6.0])
+    assert float(row["mean"]) == pytest.approx(finals.mean(), rel=1e-12)
+    assert float(auc_rows[("cheetah-run", "pebble")]["mean"]) == pytest.approx(aucs.mean(), rel=1e-12)
+    assert "AUCs are not comparable" in auc_rows[("cheetah-run", "r2n_pebble")]["notes"]  # 5 points vs 3
+    runs = {os.path.dirname(r["path"]): r for r in read_csv(tmp_path / "runs.csv")}
+    assert runs[os.path.abspath(bad["crashed"])]["status"] == "skipped"  # a crashed run is never used
+    assert not os.path.exists(tmp_path / "curves")
+
+
+@needs_analysis
+def test_runs_sharing_a_folder_are_read_apart(tmp_path):
+    """Two runs of a sweep started in the same second write into one folder: one run per event file."""
+    write_run(str(tmp_path / "runs"), "cheetah-run", 0.5, 1000, "pebble", 1, [1.0] * 5, stamp=7)
+    write_run(str(tmp_path / "runs"), "cheetah-run", 0.9, 1000, "pebble", 1, [3.0] * 5, stamp=7)
+    assert len(os.listdir(tmp_path / "runs")) == 1
+    assert analyze.main(analyze.Args(log_dirs=(str(tmp_path / "runs"),), output_dir=str(tmp_path / "out"),
+                                     plots=False)) == 0
+    rows = {r["noise"]: r for r in read_csv(tmp_path / "out" / "final_return.csv")}
+    assert (rows["0.5"]["mean"], rows["0.9"]["mean"], rows["0.5"]["seeds"]) == ("1.0", "3.0", "1")
+    assert all("shares its folder with 1 other event file" in r["notes"] for r in rows.values())
+
+
+@needs_analysis
+def test_pngs_written(synthetic):
+    out = synthetic["out"]
+    pngs = [out / "curves" / "cheetah-run.png", out / "curves" / "walker-walk.png",
+            out / "connectivity" / "cheetah-run__noise0.9__budget1000__r2n_pebble.png",
+            out / "connectivity" / "walker-walk__noise0.9__budget4000__r2n_pebble.png"]
+    for png in pngs:
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000, png
+    assert sorted(os.listdir(out / "connectivity")) == sorted(p.name for p in pngs[2:])  # pebble has no sparse tags
+
+
+@needs_analysis
+def test_baseline_overrides_and_alternative(synthetic, tmp_path):
+    """--alternative less tests baseline > method; --baseline-for pairs a method with its own baseline."""
+    data = synthetic["data"]
+    analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path), baseline="r2n_pebble",
+                              alternative="less", plots=False))
+    row = {(r["task"], r["method"]): r for r in read_csv(tmp_path / "final_return.csv")}[("cheetah-run", "pebble")]
+    finals, _ = expected_stats(data, "cheetah-run", "pebble", [1, 2, 3])
+    ref, _ = expected_stats(data, "cheetah-run", "r2n_pebble", [1, 2, 3, 4])
+    assert float(row["p_value"]) == pytest.approx(welch(ref, finals), rel=1e-9)
+    analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path), baseline="nothing",
+                              baseline_for=("r2n_pebble=pebble",), plots=False))
+    rows = read_csv(tmp_path / "final_return.csv")
+    assert all((r["baseline"] == "pebble") == (r["method"] == "r2n_pebble") for r in rows)
+
+
+# ---------------------------------------------------------------- benchmark.py: grids
+
+
+def grid(**kwargs):
+    return benchmark.expand(benchmark.Args(**kwargs))
+
+
+def test_presets_expand_to_the_paper_grids():
+    main = grid(preset="main")
+    assert len(main) == 5 * 6 * 14 == len({r.run_id for r in main})
+    assert {(r.env_id, r.noise, r.budget) for r in main} == {
+        ("cartpole-swingup", 0.9, 400), ("walker-walk", 0.9, 4000), ("cheetah-run", 0.9, 1000),
+        ("quadruped-walk", 0.7, 4000), ("humanoid-stand", 0.7, 10000)}
+    assert {r.method for r in main} == {"pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune"}
+    assert {r.seed for r in main} == set(range(1, 15))
+    assert [r.seed for r in main[:30]] == [1] * 30  # seed-major
+    first = main[0]
+    assert first.run_id == "pebble__cartpole-swingup__noise0.9__budget400__seed1"
+    assert list(first.command[1:]) == [os.path.join(ROOT, "pebble.py"), "--exp-name", "pebble", "--env-id",
+                                       "cartpole-swingup", "--noise", "0.9", "--max-feedback", "400", "--seed", "1",
+                                       "--threads", "1"]
+    last = main[-1]
+    assert last.run_id == "r2n_rune__humanoid-stand__noise0.7__budget10000__seed14"
+    assert shlex.join(last.command[1:]).endswith(
+        "r2n_rune.py --exp-name r2n_rune --env-id humanoid-stand --noise 0.7 --max-feedback 10000 --seed 14 --threads 1")
+
+    sparse = grid(preset="sparse-baselines")
+    assert len(sparse) == 5 * 5 * 5
+    assert {r.method for r in sparse} == {"r2n_pebble", "set_pebble", "static_pebble", "l1_pebble", "dropconnect_pebble"}
+    assert {r.seed for r in sparse} == set(range(1, 6))
+
+    noise = grid(preset="noise-sweep")
+    assert len(noise) == 6 * 2 * 5
+    assert {(r.env_id, r.noise, r.budget) for r in noise} == {("cheetah-run", n, 1000) for n in (0, 0.2, 0.5, 0.7, 0.9, 0.95)}
+    assert "noise0__budget1000" in noise[0].run_id and noise[0].command[7] == "0"
+
+    feedback = grid(preset="feedback-sweep")
+    assert len(feedback) == 7 * 2 * 5
+    assert {r.budget for r in feedback} == {100, 200, 400, 1000, 2000, 4000, 10000}
+    assert {(r.env_id, r.noise) for r in feedback} == {("cheetah-run", 0.9)}
+
+    dst = grid(preset="dst-ablation", extra="--total-timesteps 100000 --cuda")
+    assert len(dst) == 3 * 5
+    by_id = {r.run_id: r for r in dst}
+    reward_only = by_id["r2n_pebble_reward_only__cheetah-run__noise0.9__budget1000__seed3"]
+    assert reward_only.command[1] == os.path.join(ROOT, "r2n_pebble.py")
+    assert list(reward_only.command[2:4]) == ["--exp-name", "r2n_pebble_reward_only"]
+    assert list(reward_only.command[-4:]) == ["--no-sparse-agent", "--total-timesteps", "100000", "--cuda"]
+    assert "--no-sparse-reward" in by_id["r2n_pebble_agent_only__cheetah-run__noise0.9__budget1000__seed5"].command
+
+
+def test_free_grids_and_overrides():
+    assert len(grid(preset="main", env_ids=("cheetah-run",), seeds=(1, 2))) == 6 * 2
+    runs = grid(methods=("pebble", "r2n_pebble"), env_ids=("walker-walk",), noises=(0.5, 0.9), budgets=(100,),
+                seeds=(4,))
+    assert [r.run_id for r in runs] == [f"{m}__walker-walk__noise{n}__budget100__seed4"
+                                        for n in (0.5, 0.9) for m in ("pebble", "r2n_pebble")]
+    assert grid(methods=("pebble",), env_ids=("cheetah-run",))[0].run_id == "pebble__cheetah-run__noise0.9__budget1000__seed1"
+    with pytest.raises(SystemExit, match="no script"):
+        grid(methods=("no_such_method",), env_ids=("cheetah-run",))
+    with pytest.raises(SystemExit, match="not a paper task"):
+        grid(methods=("pebble",), env_ids=("finger-spin",))
+
+
+def test_sac_oracles_get_no_budget(tmp_path):
+    for name in ("sac", "pebble"):
+        (tmp_path / f"{name}.py").write_text("")
+    runs = grid(methods=("sac", "pebble"), env_ids=("cheetah-run",), budgets=(100, 200), script_dir=str(tmp_path))
+    assert [r.run_id for r in runs] == ["sac__cheetah-run__noise0.9__budgetnone__seed1",
+                                        "pebble__cheetah-run__noise0.9__budget100__seed1",
+                                        "pebble__cheetah-run__noise0.9__budget200__seed1"]
+    assert "--max-feedback" not in runs[0].command
+    oracles = grid(preset="main", methods=("sac", "anf_sac"))  # the oracle rows of the main table's settings
+    assert len(oracles) == 5 * 2 * 14 and all("--max-feedback" not in r.command for r in oracles)
+    assert oracles[0].run_id == "sac__cartpole-swingup__noise0.9__budgetnone__seed1"
+
+
+# ---------------------------------------------------------------- benchmark.py: back-ends
+
+FAKE = """import json, os, sys, time
+start = time.time()
+if os.environ.get("FAKE_FOLDER"):  # like the scripts: `runs/{env_id}__{exp_name}__{seed}__{unix_time}` after imports
+    time.sleep(0.3)
+    env_id, exp_name, seed = (sys.argv[sys.argv.index(f) + 1] for f in ("--env-id", "--exp-name", "--seed"))
+    os.makedirs(f"runs/{env_id}__{exp_name}__{seed}__{int(time.time())}")  # fails if it exists
+time.sleep(float(os.environ.get("FAKE_SLEEP", "1")))
+print(json.dumps(dict(cuda=os.environ.get("CUDA_VISIBLE_DEVICES"), omp=os.environ.get("OMP_NUM_THREADS"),
+                      argv=sys.argv[1:], start=start, end=time.time())))
+sys.exit(3 if sys.argv[sys.argv.index("--seed") + 1] == "99" else 0)
+"""
+
+
+@pytest.fixture
+def fake_scripts(tmp_path, monkeypatch):
+    """A working folder with fake `pebble.py` / `r2n_pebble.py` that print what they see (exit 3 for seed 99)."""
+    scripts = tmp_path / "scripts"
+    scripts.mkdir()
+    for name in ("pebble", "r2n_pebble"):
+        (scripts / f"{name}.py").write_text(FAKE)
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    return str(scripts)
+
+
+def child_view(run_id):
+    """What the fake script printed (the JSON line of its log)."""
+    import json
+
+    with open(os.path.join("logs", f"{run_id}.log")) as f:
+        return json.loads(next(line for line in f if line.startswith("{")))
+
+
+def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1, 2), gpus="0,1",
+                          runs_per_gpu=2, script_dir=fake_scripts)
+    runs = benchmark.expand(args)
+    assert benchmark.main(args) == 0
+    views = [child_view(r.run_id) for r in runs]
+    assert [v["cuda"] for v in views] == ["0", "1", "0", "1"]  # round-robin over 2 GPUs x 2 slots
+    assert all(v["omp"] == "1" and v["argv"][-2:] == ["--threads", "1"] for v in views)
+    assert max(v["start"] for v in views) < min(v["end"] for v in views)  # all four ran at the same time
+    assert all(os.path.exists(f"logs/{r.run_id}.done") for r in runs)
+    log = open(f"logs/{runs[0].run_id}.log").read()
+    assert "# exit code 0" in log and "--exp-name pebble" in log
+
+    # a second call skips the finished runs; seed 99 fails with its exit code and log, and the call exits non-zero
+    capsys.readouterr()
+    mtimes = [os.path.getmtime(f"logs/{r.run_id}.log") for r in runs]
+    args.seeds = (1, 2, 99)
+    assert benchmark.main(args) == 1
+    output = capsys.readouterr().out
+    assert "skipping 4 finished runs" in output
+    assert [os.path.getmtime(f"logs/{r.run_id}.log") for r in runs] == mtimes
+    for method in ("pebble", "r2n_pebble"):
+        run_id = f"{method}__cheetah-run__noise0.9__budget1000__seed99"
+        assert f"FAILED {run_id}: exit code 3, log {os.path.abspath(f'logs/{run_id}.log')}" in output
+        assert os.path.exists(f"logs/{run_id}.failed") and not os.path.exists(f"logs/{run_id}.done")
+    assert "0 runs finished, 4 skipped as already finished, 2 failed" in output
+
+    # --dry-run lists what is done, what failed and what would run
+    args.dry_run = True
+    assert benchmark.main(args) == 0
+    output = capsys.readouterr().out
+    assert output.count("# done: ") == 4 and output.count("# previously failed (exit code 3") == 2
+    assert "# 6 runs, 4 already finished, 2 to run" in output
+
+
+def test_runs_that_could_share_a_folder_start_apart(fake_scripts, monkeypatch):
+    """Same env, method and seed at three noises: started one after the other, each gets its own folder."""
+    monkeypatch.setenv("FAKE_FOLDER", "1")
+    monkeypatch.setenv("FAKE_SLEEP", "2")
+    args = benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), noises=(0.1, 0.2, 0.3), workers=3,
+                          script_dir=fake_scripts)
+    assert benchmark.main(args) == 0
+    assert len(os.listdir("runs")) == 3
+    assert not [f for f in os.listdir("logs") if f.endswith(".lock")]
+    views = [child_view(r.run_id) for r in benchmark.expand(args)]
+    assert max(v["start"] for v in views) < min(v["end"] for v in views)  # still running at the same time
+
+
+def test_cli_exit_code_and_no_gpus(fake_scripts):
+    """The command line: without --gpus, CUDA_VISIBLE_DEVICES is left alone; a failed run makes the exit code 1."""
+    env = dict(os.environ, FAKE_SLEEP="0", CUDA_VISIBLE_DEVICES="7")
+    result = subprocess.run(
+        [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run",
+         "--seeds", "1", "99", "--workers", "2", "--script-dir", fake_scripts, "--threads", "2"],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "FAILED pebble__cheetah-run__noise0.9__budget1000__seed99: exit code 3" in result.stdout
+    view = child_view("pebble__cheetah-run__noise0.9__budget1000__seed1")
+    assert (view["cuda"], view["omp"]) == ("7", "2")
+
+
+@needs_submitit
+def test_slurm_backend_with_submitit_local_executor(fake_scripts, capsys, monkeypatch):
+    """One job array, two runs packed per job; the job results report the failures; finished runs are not resubmitted."""
+    monkeypatch.setenv("FAKE_SLEEP", "0")
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1, 99), runs_per_gpu=2,
+                          script_dir=fake_scripts, backend="slurm", slurm_cluster="local", slurm_wait=True, slurm_time=5,
+                          slurm_folder="submitit")
+    assert benchmark.main(args) == 1
+    output = capsys.readouterr().out
+    assert "submitted 4 runs as 2 array tasks (2 per GPU job)" in output
+    for method in ("pebble", "r2n_pebble"):
+        assert os.path.exists(f"logs/{method}__cheetah-run__noise0.9__budget1000__seed1.done")
+        assert f"FAILED {method}__cheetah-run__noise0.9__budget1000__seed99: exit code 3" in output
+    assert child_view("r2n_pebble__cheetah-run__noise0.9__budget1000__seed1")["argv"][:2] == ["--exp-name", "r2n_pebble"]
+    assert benchmark.main(args) == 1  # resubmits only the two failed runs
+    output = capsys.readouterr().out
+    assert "skipping 2 finished runs" in output and "submitted 2 runs as 1 array tasks" in output
+
+
+@needs_submitit
+def test_slurm_job_script(fake_scripts, tmp_path, monkeypatch, capsys):
+    """On a cluster: a fake `sbatch` receives one array script with the user's settings."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "sbatch").write_text(f'#!/bin/sh\ncp "$1" {bin_dir}/job.sbatch\necho "Submitted batch job 4242"\n')
+    (bin_dir / "srun").write_text("#!/bin/sh\nexit 0\n")
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1, 2, 3), runs_per_gpu=2,
+                          script_dir=fake_scripts, backend="slurm", slurm_partition="gpu", slurm_time=1440,
+                          slurm_mem_gb=40, slurm_account="rl", slurm_extra=("constraint=a100",), slurm_folder="sub")
+    assert benchmark.main(args) == 0
+    assert "submitted 6 runs as 3 array tasks" in capsys.readouterr().out
+    script = (bin_dir / "job.sbatch").read_text()
+    for line in ("#SBATCH --array=0-2%", "#SBATCH --partition=gpu", "#SBATCH --time=1440", "#SBATCH --mem=80GB",
+                 "#SBATCH --gpus-per-node=1", "#SBATCH --cpus-per-task=2", "#SBATCH --account=rl",
+                 "#SBATCH --constraint=a100"):
+        assert line in script, line
+
+
+@needs_analysis
+def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch):
+    """One tiny real pebble.py run (TINY from test_scripts) launched by benchmark.py, then read by analyze.py."""
+    monkeypatch.chdir(tmp_path)
+    tiny, skip = [], {"--env-id", "--noise", "--max-feedback"}
+    for i in range(0, len(TINY), 2):
+        if TINY[i] not in skip:
+            tiny += TINY[i:i + 2]
+    started = time.time()
+    code = benchmark.main(benchmark.Args(methods=("pebble",), env_ids=("cartpole-swingup",), noises=(0.9,),
+                                         budgets=(20,), seeds=(5,), extra=shlex.join(tiny)))
+    log = open("logs/pebble__cartpole-swingup__noise0.9__budget20__seed5.log").read()
+    assert code == 0, log
+    assert "step=3000 eval_return=" in log and time.time() - started < 300
+    assert analyze.main(analyze.Args(log_dirs=("runs",), output_dir="analysis")) == 0
+    (row,) = read_csv("analysis/final_return.csv")
+    assert (row["task"], row["noise"], row["budget"], row["method"], row["seeds"], row["last_step"]) == (
+        "cartpole-swingup", "0.9", "20", "pebble", "1", "3000")
+    last_eval = float(log.split("step=3000 eval_return=")[1].split()[0])
+    assert float(row["mean"]) == pytest.approx(last_eval, abs=0.006) and row["se"] == "nan"
+    assert os.path.getsize("analysis/curves/cartpole-swingup.png") > 0
