@@ -484,6 +484,22 @@ def write_plots(groups, args: Args) -> list:
             se = values.std(axis=0, ddof=1) / math.sqrt(len(values))
             ax.fill_between(steps, mean - se, mean + se, color=line.get_color(), alpha=0.2, linewidth=0)
 
+    def style_axis(ax, title, ylabel):
+        ax.set_title(title)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+
+    def save_figure(fig, axes, n_used, title, title_style, path):
+        for ax in list(axes.flat)[n_used:]:
+            ax.set_visible(False)
+        fig.suptitle(title, **title_style)
+        fig.tight_layout()
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+
     by_task = defaultdict(list)
     for g in groups:
         by_task[g.key[0]].append(g)
@@ -498,19 +514,9 @@ def write_plots(groups, args: Args) -> list:
             for g in sorted((g for g in task_groups if (g.key[1], g.key[2]) == (noise, budget)),
                             key=lambda g: methods.index(g.key[3])):
                 band(ax, g.steps, g.curves, f"{g.key[3]} (n={len(g.runs)})", color=colour[g.key[3]])
-            ax.set_title(f"noise {noise}, " + ("no feedback" if budget is None else f"budget {budget}"))
-            ax.set_xlabel("environment steps")
-            ax.set_ylabel("evaluation return")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-        for ax in list(axes.flat)[len(settings):]:
-            ax.set_visible(False)
-        fig.suptitle(f"{task}: mean ± standard error over seeds")
-        fig.tight_layout()
-        path = os.path.join(args.output_dir, "curves", f"{safe_name(task)}.png")
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
+            style_axis(ax, f"noise {noise}, " + ("no feedback" if budget is None else f"budget {budget}"), "evaluation return")
+        save_figure(fig, axes, len(settings), f"{task}: mean ± standard error over seeds", {},
+                    os.path.join(args.output_dir, "curves", f"{safe_name(task)}.png"))
 
     for g in groups:
         nets = None
@@ -528,23 +534,13 @@ def write_plots(groups, args: Args) -> list:
             for metric, style in (("relevant_degree", "-"), ("noise_degree", "--")):
                 steps, values = aligned(g, f"sparse/{net}/{metric}")
                 band(ax, steps, values, metric.replace("_", " "), linestyle=style)
-            ax.set_title(net)
-            ax.set_xlabel("environment steps")
-            ax.set_ylabel("active weights per input column")
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
-        for ax in list(axes.flat)[len(nets):]:
-            ax.set_visible(False)
+            style_axis(ax, net, "active weights per input column")
         task, noise, budget, method = g.key
-        fig.suptitle(f"{method} on {task}, noise {noise}, budget {budget}\n"
-                     f"input-layer connectivity, mean ± SE over {len(g.runs)} seeds", fontsize=10)
-        fig.tight_layout()
         os.makedirs(os.path.join(args.output_dir, "connectivity"), exist_ok=True)
-        path = os.path.join(args.output_dir, "connectivity",
-                            safe_name(f"{task}__noise{noise}__budget{budget}__{method}") + ".png")
-        fig.savefig(path, dpi=100)
-        plt.close(fig)
-        written.append(path)
+        save_figure(fig, axes, len(nets), f"{method} on {task}, noise {noise}, budget {budget}\n"
+                    f"input-layer connectivity, mean ± SE over {len(g.runs)} seeds", {"fontsize": 10},
+                    os.path.join(args.output_dir, "connectivity",
+                                 safe_name(f"{task}__noise{noise}__budget{budget}__{method}") + ".png"))
     return written
 
 
