@@ -181,7 +181,9 @@ def validate_args(args: Args) -> None:
     if args.queries_per_round < 1:
         raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
     if not 1 <= args.segment_size <= args.episode_length:
-        raise ValueError(f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})")
+        raise ValueError(
+            f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})"
+        )
     if args.learning_starts <= args.knn_k:
         raise ValueError(f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}")
     if args.total_timesteps <= args.learning_starts + args.unsup_steps:

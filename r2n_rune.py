@@ -211,7 +211,9 @@ def validate_args(args: Args) -> None:
     if args.queries_per_round < 1:
         raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
     if not 1 <= args.segment_size <= args.episode_length:
-        raise ValueError(f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})")
+        raise ValueError(
+            f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})"
+        )
     if args.learning_starts <= args.knn_k:
         raise ValueError(f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}")
     if args.total_timesteps <= args.learning_starts + args.unsup_steps:
@@ -241,7 +243,8 @@ def validate_args(args: Args) -> None:
     for flag in ("reward_drop_fraction", "agent_drop_fraction"):
         if not 0.0 <= getattr(args, flag) <= 1.0:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
-    for flag in ("reward_topology_period", "agent_topology_period", "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq", "eval_freq",
+    for flag in ("reward_topology_period", "agent_topology_period", "episode_length", "ensemble_size", "reward_layers",
+                 "reward_epochs", "feedback_freq", "eval_freq",
                  "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
