@@ -24,11 +24,16 @@ What the scripts use:
 
 import math
 import os
+import warnings
 from typing import Optional
 
 import gymnasium as gym
 import numpy as np
 import torch
+
+# dm_control tries the GLFW renderer first and GLFW warns when there is no display; headless runs need no renderer
+# (set MUJOCO_GL=egl or osmesa to record videos), so the warning is only noise in every run's console.
+warnings.filterwarnings("ignore", message=".*The DISPLAY environment variable is missing")
 
 HISTOGRAM_BINS = 100
 NOISE_TYPES = ("gaussian", "imitate")

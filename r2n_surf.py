@@ -739,7 +739,10 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        import wandb
+        try:
+            import wandb
+        except ImportError:
+            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
 
         wandb.init(
             project=args.wandb_project_name,

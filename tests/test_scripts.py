@@ -1,5 +1,6 @@
 """Scripts end to end: smoke runs that reach every phase, their tags and checkpoint, determinism, bad input."""
 import glob
+import importlib.util
 import math
 import os
 import subprocess
@@ -139,3 +140,12 @@ def test_help_documents_every_flag(script, tmp_path):
     if script in SPARSE_SCRIPTS:
         for flag in ("--sparse-reward", "--no-sparse-agent", "--reward-sparsity", "--agent-topology-period"):
             assert flag in result.stdout
+
+
+@pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb is installed")
+def test_track_without_wandb_says_how_to_install(tmp_path):
+    result = run_script("pebble.py", TINY + ["--track"], tmp_path, check=False)
+    assert result.returncode != 0
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--track needs wandb" in lines[0], result.stderr
+    assert not os.path.exists(tmp_path / "runs")
