@@ -27,9 +27,9 @@ Choices where the paper is silent:
   anyway, with a note.
 - Skipped runs are listed (path and reason) on stdout, in the Markdown files and in `runs.csv`; they are never
   averaged.
-- One run per event file, not per folder: the run folder `{env_id}__{exp_name}__{seed}__{unix_time}` does not name
-  noise or budget, so two runs of a sweep started in the same second share it (each writes its own event file, and
-  the checkpoint there is the last writer's). Such runs are used separately, with a note.
+- One run per event file, not per folder: the scripts give every run its own folder, but a folder that holds several
+  event files (copied together, or written by an older version that could share a folder within one second) has
+  each used separately, with a note.
 """
 import csv
 import glob
@@ -212,8 +212,8 @@ def load_runs(log_dirs, include_unfinished: bool = False) -> list:
             continue
         runs.append(run)
         if per_folder[run.folder] > 1:
-            run.note = (f"shares its folder with {per_folder[run.folder] - 1} other event file(s) (runs started in "
-                        f"the same second; the folder's checkpoint is one of theirs)")
+            run.note = (f"shares its folder with {per_folder[run.folder] - 1} other event file(s) (the folder's "
+                        f"checkpoint is one of theirs)")
         missing = [k for k in ("env_id", "exp_name", "seed") if k not in run.hparams]
         steps = run.eval_steps
         total = run.hparams.get("total_timesteps")

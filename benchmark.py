@@ -22,20 +22,17 @@ Choices where the issue is silent:
   from scratch: the scripts do not resume).
 - Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
   in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
-- Run folders: the scripts name theirs `runs/{env_id}__{exp_name}__{seed}__{unix_time}`, without noise or budget, so
-  two runs of a sweep that differ only there would share a folder if started in the same second. Runs of one call
-  that share (env, method, seed) are therefore started one at a time: under a lock file
-  `{log_dir}/{env_id}__{method}__{seed}.lock` (shared by the jobs of a SLURM array), the launcher waits until the new
-  run's folder exists and its second has passed before it starts the next one (at most `START_TIMEOUT_S`).
+- Run folders: the scripts create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` atomically and take the next
+  second when a run of the same env, method and seed (another noise or budget) got there first, so runs of a sweep
+  can start together.
 """
-import glob
 import os
 import shlex
 import signal
 import subprocess
 import sys
 import time
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass
 from typing import Literal, NamedTuple, Optional
 
@@ -58,9 +55,6 @@ VARIANTS = {
 }
 # SAC oracles: trained on the true reward, no feedback budget.
 NO_FEEDBACK = frozenset({"sac", "anf_sac"})
-# Waiting for a run's folder (see "Run folders" above): give up after this long; a lock this old is stale.
-START_TIMEOUT_S = 600
-STALE_LOCK_S = 900
 
 
 class Preset(NamedTuple):
@@ -238,45 +232,6 @@ def marker(log_dir: str, run_id: str, kind: str) -> str:
 # ---------------------------------------------------------------- running one run (shared by both back-ends)
 
 
-def acquire(lock: str) -> None:
-    """Create `lock` exclusively (works across the jobs of an array on a shared file system); wait while it exists."""
-    while True:
-        try:
-            os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
-            return
-        except FileExistsError:
-            try:
-                if time.time() - os.path.getmtime(lock) > STALE_LOCK_S:  # its holder died
-                    os.remove(lock)
-            except FileNotFoundError:
-                pass
-            time.sleep(0.2)
-
-
-def start_run(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
-    """Start one run (one at a time per shared run folder, see "Run folders" above) and return its process."""
-    if not spec["serialize"]:
-        return launch(spec, gpu)
-    acquire(spec["lock"])
-    try:
-        before = set(glob.glob(spec["folders"]))
-        process = launch(spec, gpu)
-        deadline = time.time() + START_TIMEOUT_S
-        while time.time() < deadline and process.poll() is None:
-            new = [int(p.rsplit("__", 1)[1]) for p in set(glob.glob(spec["folders"])) - before
-                   if p.rsplit("__", 1)[1].isdigit()]
-            if new:  # its folder exists; the next run must get a later second
-                time.sleep(max(0.0, max(new) + 1 - time.time()))
-                break
-            time.sleep(0.1)
-        return process
-    finally:
-        try:
-            os.remove(spec["lock"])
-        except FileNotFoundError:  # broken as stale by another job (only after STALE_LOCK_S)
-            pass
-
-
 def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
     """Start one run: clear its markers, open its log (header: command, GPU, start time), return the process."""
     for kind in ("done", "failed"):
@@ -308,7 +263,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
 
 def run_group(specs: list) -> list:
     """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)]."""
-    processes = [(spec, start_run(spec)) for spec in specs]
+    processes = [(spec, launch(spec)) for spec in specs]
     results = []
     for spec, process in processes:
         returncode = process.wait()
@@ -317,22 +272,10 @@ def run_group(specs: list) -> list:
     return results
 
 
-def folder_key(run: Run) -> str:
-    """The part of the scripts' run folder name that a run shares with runs of other noise or budget."""
-    return f"{run.env_id}__{run.method}__{run.seed}"
-
-
-def spec_of(run: Run, args: Args, serialize: bool = False) -> dict:
+def spec_of(run: Run, args: Args) -> dict:
     """What a job needs to know about a run (plain data: it travels to SLURM jobs)."""
     return dict(run_id=run.run_id, command=list(run.command), cwd=os.getcwd(), threads=args.threads,
-                log=os.path.abspath(marker(args.log_dir, run.run_id, "log")), serialize=serialize,
-                folders=os.path.join(glob.escape(os.path.abspath("runs")), glob.escape(folder_key(run)) + "__*"),
-                lock=os.path.abspath(os.path.join(args.log_dir, folder_key(run) + ".lock")))
-
-
-def shared_folder_keys(runs: list) -> set:
-    """Folder keys of the runs that could share a run folder (same env, method and seed)."""
-    return {key for key, n in Counter(folder_key(run) for run in runs).items() if n > 1}
+                log=os.path.abspath(marker(args.log_dir, run.run_id, "log")))
 
 
 def describe(returncode: int) -> str:
@@ -355,15 +298,14 @@ def run_local(runs: list, args: Args) -> list:
     if slots is not None:
         workers = min(workers, len(slots))
     pending, active, results = deque(runs), {}, []
-    shared = shared_folder_keys(runs)
     print(f"running {len(runs)} runs, {workers} at a time" + (f" on GPUs {','.join(gpus)} "
           f"({args.runs_per_gpu} per GPU)" if gpus else ""), flush=True)
     try:
         while pending or active:
             while pending and len(active) < workers:
                 run, gpu = pending.popleft(), slots.popleft() if slots is not None else None
-                spec = spec_of(run, args, folder_key(run) in shared)
-                active[run.run_id] = (spec, start_run(spec, gpu), gpu)
+                spec = spec_of(run, args)
+                active[run.run_id] = (spec, launch(spec, gpu), gpu)
                 print(f"started {run.run_id}" + ("" if gpu is None else f" on GPU {gpu}") + f" -> {spec['log']}",
                       flush=True)
             time.sleep(0.05)
@@ -424,8 +366,7 @@ def run_slurm(runs: list, args: Args) -> Optional[list]:
 
         cloudpickle.register_pickle_by_value(sys.modules[__name__])
     k = args.runs_per_gpu
-    shared = shared_folder_keys(runs)
-    specs = [spec_of(run, args, folder_key(run) in shared) for run in runs]
+    specs = [spec_of(run, args) for run in runs]
     chunks = [specs[i:i + k] for i in range(0, len(specs), k)]
     executor = make_executor(args)
     jobs = executor.map_array(run_group, chunks)

@@ -213,6 +213,20 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
 
+# TRY NOT TO MODIFY: the run folder
+def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
+    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    unix_time = int(time.time())
+    while True:
+        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
+        try:
+            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            return run_name
+        except FileExistsError:
+            unix_time += 1
+
+
 # TRY NOT TO MODIFY: replay and preference storage, on the device
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
     """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
@@ -535,19 +549,19 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
-    run_name = f"{args.env_id}__{args.exp_name}__{args.seed}__{int(time.time())}"
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
-        eval_envs = [
-            ene.make_env(
-                args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
-                args.episode_length, f"videos/{run_name}" if args.capture_video and i == 0 else None,
-            )
-            for i in range(args.eval_episodes)
-        ]
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
+    run_name = make_run_folder(args.env_id, args.exp_name, args.seed)
+    eval_envs = [
+        ene.make_env(
+            args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
+            args.episode_length, f"videos/{run_name}" if args.capture_video and i == 0 else None,
+        )
+        for i in range(args.eval_episodes)
+    ]
     for i, eval_env in enumerate(eval_envs):
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 

@@ -149,3 +149,15 @@ def test_track_without_wandb_says_how_to_install(tmp_path):
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "--track needs wandb" in lines[0], result.stderr
     assert not os.path.exists(tmp_path / "runs")
+
+
+@pytest.mark.parametrize("script", PBRL_SCRIPTS)
+def test_runs_started_in_the_same_second_get_their_own_folders(script, tmp_path, monkeypatch):
+    """A sweep starts runs that differ only in noise or budget, which the folder name does not show."""
+    sys.path.insert(0, ROOT)
+    module = __import__(script[:-3])
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(module.time, "time", lambda: 1_700_000_000.5)
+    names = [module.make_run_folder("cheetah-run", "pebble", 1) for _ in range(3)]
+    assert names == [f"cheetah-run__pebble__1__{1_700_000_000 + i}" for i in range(3)]
+    assert sorted(os.listdir(tmp_path / "runs")) == names

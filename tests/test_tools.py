@@ -322,10 +322,6 @@ def test_sac_oracles_get_no_budget(tmp_path):
 
 FAKE = """import json, os, sys, time
 start = time.time()
-if os.environ.get("FAKE_FOLDER"):  # like the scripts: `runs/{env_id}__{exp_name}__{seed}__{unix_time}` after imports
-    time.sleep(0.3)
-    env_id, exp_name, seed = (sys.argv[sys.argv.index(f) + 1] for f in ("--env-id", "--exp-name", "--seed"))
-    os.makedirs(f"runs/{env_id}__{exp_name}__{seed}__{int(time.time())}")  # fails if it exists
 time.sleep(float(os.environ.get("FAKE_SLEEP", "1")))
 print(json.dumps(dict(cuda=os.environ.get("CUDA_VISIBLE_DEVICES"), omp=os.environ.get("OMP_NUM_THREADS"),
                       argv=sys.argv[1:], start=start, end=time.time())))
@@ -387,19 +383,6 @@ def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
     output = capsys.readouterr().out
     assert output.count("# done: ") == 4 and output.count("# previously failed (exit code 3") == 2
     assert "# 6 runs, 4 already finished, 2 to run" in output
-
-
-def test_runs_that_could_share_a_folder_start_apart(fake_scripts, monkeypatch):
-    """Same env, method and seed at three noises: started one after the other, each gets its own folder."""
-    monkeypatch.setenv("FAKE_FOLDER", "1")
-    monkeypatch.setenv("FAKE_SLEEP", "2")
-    args = benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), noises=(0.1, 0.2, 0.3), workers=3,
-                          script_dir=fake_scripts)
-    assert benchmark.main(args) == 0
-    assert len(os.listdir("runs")) == 3
-    assert not [f for f in os.listdir("logs") if f.endswith(".lock")]
-    views = [child_view(r.run_id) for r in benchmark.expand(args)]
-    assert max(v["start"] for v in views) < min(v["end"] for v in views)  # still running at the same time
 
 
 def test_cli_exit_code_and_no_gpus(fake_scripts):
