@@ -28,6 +28,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # "following ANF"; ANF's public code regrows at random, like SET), so the agent moves its connections onto the
 # task-relevant features. Masked weights are exactly 0; their gradients and Adam moments are kept at 0; grown weights
 # start at 0 with zero moments. Target critics are dense Polyak copies. `diff sac.py anf_sac.py` is that change.
+import importlib.util
 import math
 import os
 import random
@@ -129,6 +130,8 @@ class Args:
 def validate_args(args: Args) -> None:
     """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.buffer_size < args.batch_size:
         raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
     if not 0.0 <= args.agent_sparsity < 1.0:
@@ -372,10 +375,7 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        try:
-            import wandb
-        except ImportError:
-            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
+        import wandb
 
         wandb.init(
             project=args.wandb_project_name,

@@ -50,6 +50,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # drop 0.2 every 100 reward optimiser steps (counted over the whole run); actor and critics: 0.8, 0.05 every 1000
 # SAC optimiser steps (the reset critic gets a fresh mask and count). Masked weights are exactly 0; their gradients
 # and Adam moments are kept at 0; grown weights start at 0 with zero moments. Target critics are dense Polyak copies.
+import importlib.util
 import math
 import os
 import random
@@ -216,6 +217,8 @@ class Args:
 def validate_args(args: Args) -> None:
     """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.max_feedback < 1:
         raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
     if args.queries_per_round is None:
@@ -753,10 +756,7 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        try:
-            import wandb
-        except ImportError:
-            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
+        import wandb
 
         wandb.init(
             project=args.wandb_project_name,

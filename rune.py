@@ -34,6 +34,7 @@ reward) nor in evaluation; sigma is not normalised; beta_t decays from step 0, n
 
 Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
 """
+import importlib.util
 import math
 import os
 import random
@@ -178,6 +179,8 @@ class Args:
 def validate_args(args: Args) -> None:
     """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.max_feedback < 1:
         raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
     if args.queries_per_round is None:
@@ -566,10 +569,7 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        try:
-            import wandb
-        except ImportError:
-            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
+        import wandb
 
         wandb.init(
             project=args.wandb_project_name,

@@ -20,6 +20,7 @@ redraws the noise columns of replay minibatches, as ANF does; the critics bootst
 
 Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
 """
+import importlib.util
 import math
 import os
 import random
@@ -113,6 +114,8 @@ class Args:
 def validate_args(args: Args) -> None:
     """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.buffer_size < args.batch_size:
         raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
     for flag in ("episode_length", "eval_freq",
@@ -261,10 +264,7 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        try:
-            import wandb
-        except ImportError:
-            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
+        import wandb
 
         wandb.init(
             project=args.wandb_project_name,

@@ -29,6 +29,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # It keeps 20% of the weights of each input layer (reward members, actor, Q1, Q2; independent random masks) and
 # never changes them: static sparse training, no topology update (`diff r2n_pebble.py static_pebble.py`). Masked
 # weights are exactly 0; their gradients and Adam moments are kept at 0. Target critics are dense Polyak copies.
+import importlib.util
 import math
 import os
 import random
@@ -179,6 +180,8 @@ class Args:
 def validate_args(args: Args) -> None:
     """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.max_feedback < 1:
         raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
     if args.queries_per_round is None:
@@ -605,10 +608,7 @@ if __name__ == "__main__":
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
 
     if args.track:
-        try:
-            import wandb
-        except ImportError:
-            raise SystemExit(f"{args.exp_name}: error: --track needs wandb: pip install -e '.[wandb]'") from None
+        import wandb
 
         wandb.init(
             project=args.wandb_project_name,
