@@ -72,7 +72,7 @@ class Args:
 # numerics (device, threads, chunking of the relabelling pass), not the algorithm.
 RUN_SPECIFIC_KEYS = frozenset({
     "seed", "exp_name", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "threads",
-    "cuda", "torch_deterministic", "log_freq", "relabel_batch_size",
+    "cuda", "torch_deterministic", "log_freq", "relabel_batch_size", "diagnostic_transitions", "diagnostic_pairs",
 })
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")

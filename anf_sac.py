@@ -158,6 +158,35 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
             unix_time += 1
 
 
+# TRY NOT TO MODIFY: console progress
+class Progress:
+    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
+    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
+    only, so it adds no host sync to the training loop."""
+
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
+        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+        self.phase, self.time, self.step, self.eval_return = None, time.time(), 0, None
+
+    def update(self, step: int, phase: str, feedback: Optional[int] = None):
+        now = time.time()
+        if phase == self.phase and now - self.time < self.interval:
+            return
+        sps = (step - self.step) / (now - self.time) if step > self.step else 0.0
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
+        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
+        if self.budget is not None:
+            line += f" | feedback {feedback}/{self.budget}"
+        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
+        print(line, flush=True)
+        self.phase, self.time, self.step = phase, now, step
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
+
+
 # TRY NOT TO MODIFY: replay storage, on the device
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
     """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
@@ -181,12 +210,14 @@ class ReplayBuffer:
         self.next_obs = torch.zeros((capacity, obs_dim), device=device)
         self.actions = torch.zeros((capacity, act_dim), device=device)
         self.rewards = torch.zeros(capacity, device=device)
+        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
         self.dones = torch.zeros(capacity, device=device)
         self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
 
-    def add(self, obs, action, next_obs, terminated: bool, reward):
+    def add(self, obs, action, next_obs, terminated: bool, true_reward: float, reward):
         self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
-        self.dones[self.pos], self.rewards[self.pos] = float(terminated), reward
+        self.dones[self.pos], self.true_rewards[self.pos] = float(terminated), true_reward
+        self.rewards[self.pos] = reward
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -245,8 +276,10 @@ class Actor(nn.Module):
     def get_action(self, obs):
         """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
         mean, log_std = self(obs)
-        x = mean + log_std.exp() * torch.randn_like(mean)
-        log_prob = torch.distributions.Normal(mean, log_std.exp()).log_prob(x)
+        eps = torch.randn_like(mean)
+        x = mean + log_std.exp() * eps
+        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
         log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
         return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
@@ -311,6 +344,7 @@ class SparseOptimizer:
     def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
         self.drop_fraction, self.period, self.steps = drop_fraction, period, 0
+        self.topology_updates = 0
         self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
         with torch.no_grad():
             for name, weight in layers.items():
@@ -323,7 +357,7 @@ class SparseOptimizer:
         if self.sparsity == 0:
             return self.optimizer.step()
         self.steps += 1
-        update_topology = self.steps % self.period == 0
+        self.topology_updates += (update_topology := self.steps % self.period == 0)
         dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
         for name, weight in self.layers.items():
             weight.grad.mul_(self.masks[name])
@@ -486,12 +520,25 @@ if __name__ == "__main__":
         }
         torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
 
+    def stop_if_not_finite(values: dict):
+        """A non-finite value ends the run, exit code 1, with one line naming it; the checkpoint is written first."""
+        bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
+        if bad is not None:
+            save_checkpoint()
+            writer.close()
+            raise SystemExit(
+                f"{args.exp_name}: error: non-finite {bad} ({values[bad]}) at step {global_step}; "
+                f"checkpoint for debugging: runs/{run_name}/{args.exp_name}.cleanrl_model"
+            )
+
     # TRY NOT TO MODIFY: start the game
     start_time = time.time()
+    progress = Progress(args.total_timesteps)
     obs, _ = env.reset(seed=args.seed)
     obs = torch.as_tensor(obs, device=device)
     episode_return, episode_length, losses = 0.0, 0, {}
     for global_step in range(args.total_timesteps):
+        progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
         # ALGO LOGIC: put action logic here
         if global_step < args.learning_starts:
             action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
@@ -500,9 +547,11 @@ if __name__ == "__main__":
                 action = actor.get_action(obs.unsqueeze(0))[0][0]
 
         # TRY NOT TO MODIFY: execute the game and log data.
-        next_obs, true_reward, terminated, truncated, _ = env.step(action.cpu().numpy())
+        env_action = action.cpu().numpy()
+        stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
+        next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
         next_obs = torch.as_tensor(next_obs, device=device)
-        rb.add(obs, action, next_obs, terminated, float(true_reward))
+        rb.add(obs, action, next_obs, terminated, float(true_reward), float(true_reward))
         episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
         obs = next_obs  # CRUCIAL step easy to overlook
         if terminated or truncated:
@@ -517,8 +566,10 @@ if __name__ == "__main__":
             sac_update(rb.sample(args.batch_size))
 
             if global_step % args.log_freq == 0:
-                for name, value in zip(losses, torch.stack(list(losses.values())).tolist()):
-                    writer.add_scalar(f"losses/{name}", value, global_step)
+                logged = dict(zip([f"losses/{name}" for name in losses], torch.stack(list(losses.values())).tolist()))
+                for tag, value in logged.items():
+                    writer.add_scalar(tag, value, global_step)
+                stop_if_not_finite(logged)
 
         if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
             eval_return = float(evaluate(actor, eval_envs, device).mean())
@@ -529,7 +580,10 @@ if __name__ == "__main__":
                 for name, weight in opt.named_matrices(opt.layers):
                     for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                         writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
+                    writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
             print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps}", flush=True)
+            progress.eval_return = eval_return
+            stop_if_not_finite({"eval/episodic_return": eval_return})
             if args.save_model:
                 save_checkpoint()
 

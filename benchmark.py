@@ -26,8 +26,10 @@ Choices where the issue is silent:
   second when a run of the same env, method and seed (another noise or budget) got there first, so runs of a sweep
   can start together.
 """
+import glob
 import os
 import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -52,6 +54,9 @@ PAPER_SETTINGS = {
 VARIANTS = {
     "r2n_pebble_reward_only": ("r2n_pebble.py", ("--no-sparse-agent",)),
     "r2n_pebble_agent_only": ("r2n_pebble.py", ("--no-sparse-reward",)),
+    # the CPU study's sensitivity arms: the stored (memorisable) noise, and reward training without early stopping
+    **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",)) for m in ("pebble", "r2n_pebble")},
+    **{f"{m}_no_early_stop": (f"{m}.py", ("--reward-stop-accuracy", "1.1")) for m in ("pebble", "r2n_pebble")},
 }
 # SAC oracles: trained on the true reward, no feedback budget.
 NO_FEEDBACK = frozenset({"sac", "anf_sac"})
@@ -61,40 +66,63 @@ class Preset(NamedTuple):
     settings: tuple  # (env_id, noise, budget) triples
     methods: tuple
     seeds: tuple
+    flags: tuple = ()  # appended to every command of the preset (scale)
+    feedback_flags: tuple = ()  # appended to the commands of the PbRL methods (feedback schedule)
+
+
+# The CPU study (README, "Results"): the paper's claim at a scale that runs in <= 20 minutes on one CPU core.
+# Fixed before any of its runs was looked at; see the README for why each value.
+CPU_STUDY_FLAGS = ("--total-timesteps", "80000", "--hidden-dim", "256", "--batch-size", "128")
+CPU_STUDY_FEEDBACK = ("--feedback-freq", "2000", "--queries-per-round", "25")  # 16 rounds: 400 labels by step 40 000
+CPU_STUDY_MAIN, CPU_STUDY_HARDER = (("cartpole-swingup", 0.9, 400),), (("cartpole-swingup", 0.95, 400),)
+CPU_STUDY_ARMS = ("pebble_stored_noise", "r2n_pebble_stored_noise", "pebble_no_early_stop", "r2n_pebble_no_early_stop")
+CPU_STUDY = tuple(
+    Preset(settings, methods, seeds, CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK)
+    for settings, methods, seeds in (
+        (CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), tuple(range(1, 9))),
+        (CPU_STUDY_HARDER, ("pebble", "r2n_pebble"), tuple(range(1, 6))),
+        (CPU_STUDY_MAIN + CPU_STUDY_HARDER, ("sac", "anf_sac"), (1, 2, 3)),
+        (CPU_STUDY_MAIN, CPU_STUDY_ARMS, (1, 2, 3)),
+    )
+)
+CPU_STUDY_RESULTS = "results/cpu-study"
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
 PRESETS = {
     # the main table: 5 tasks x 6 methods x 14 seeds = 420 runs
-    "main": Preset(MAIN_SETTINGS, ("pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune"), tuple(range(1, 15))),
+    "main": (Preset(MAIN_SETTINGS, ("pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune"), tuple(range(1, 15))),),
     # R2N against the sparse-training baselines: 5 tasks x 5 methods x 5 seeds = 125 runs
-    "sparse-baselines": Preset(
+    "sparse-baselines": (Preset(
         MAIN_SETTINGS, ("r2n_pebble", "set_pebble", "static_pebble", "l1_pebble", "dropconnect_pebble"), tuple(range(1, 6))
-    ),
+    ),),
     # cheetah-run, noise sweep at budget 1000: 6 x 2 x 5 = 60 runs
-    "noise-sweep": Preset(
+    "noise-sweep": (Preset(
         tuple(("cheetah-run", noise, 1000) for noise in (0.0, 0.2, 0.5, 0.7, 0.9, 0.95)), ("pebble", "r2n_pebble"),
         tuple(range(1, 6)),
-    ),
+    ),),
     # cheetah-run, budget sweep at noise 0.9: 7 x 2 x 5 = 70 runs
-    "feedback-sweep": Preset(
+    "feedback-sweep": (Preset(
         tuple(("cheetah-run", 0.9, budget) for budget in (100, 200, 400, 1000, 2000, 4000, 10000)),
         ("pebble", "r2n_pebble"), tuple(range(1, 6)),
-    ),
+    ),),
     # cheetah-run 0.9/1000: full R2N, sparse reward models only, sparse actor/critics only: 3 x 5 = 15 runs
-    "dst-ablation": Preset(
+    "dst-ablation": (Preset(
         (("cheetah-run", 0.9, 1000),), ("r2n_pebble", "r2n_pebble_reward_only", "r2n_pebble_agent_only"),
         tuple(range(1, 6)),
-    ),
+    ),),
+    # the CPU study: cartpole-swingup at noise 0.9 and 0.95, budget 400, 80k steps, 256-wide SAC: 8+8, 5+5, 12, 12 runs
+    "cpu-study": CPU_STUDY,
 }
 
 
 @dataclass
 class Args:
-    preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation"]] = None
+    preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
-    r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds)"""
+    r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
+    `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
     `r2n_pebble_agent_only`); replaces the preset's"""
@@ -124,6 +152,10 @@ class Args:
     """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""
     log_dir: str = "logs"
     """per-run logs `{run_id}.log` and markers `{run_id}.done` / `{run_id}.failed`"""
+    results_dir: Optional[str] = None
+    """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
+    `done` file naming the git commit; a run with that file is finished (default with `--preset cpu-study`:
+    `results/cpu-study`, so that committed results are skipped by the next session)"""
     script_dir: str = ROOT
     """folder holding the scripts"""
     python: str = sys.executable
@@ -169,9 +201,8 @@ def fail(message: str):
     raise SystemExit(f"benchmark: error: {message}")
 
 
-def grid(args: Args) -> tuple:
-    """(settings, methods, seeds) of the preset with the flags' replacements applied."""
-    preset = PRESETS[args.preset] if args.preset else None
+def grid(args: Args, preset: Optional[Preset]) -> tuple:
+    """(settings, methods, seeds) of one part of the preset (or of the flags alone) with the flags' replacements."""
     methods = tuple(args.methods or (preset.methods if preset else ()))
     seeds = tuple(args.seeds or (preset.seeds if preset else (1,)))
     if not methods:
@@ -206,27 +237,53 @@ def script_of(method: str, script_dir: str) -> tuple:
 
 
 def expand(args: Args) -> list:
-    """The runs of the grid, seed-major, deduplicated by run id."""
-    settings, methods, seeds = grid(args)
-    scripts = {m: script_of(m, args.script_dir) for m in methods}
+    """The runs of the grid (the union of the preset's parts), seed-major, deduplicated by run id."""
     extra = tuple(shlex.split(args.extra))
     runs = {}
-    for seed in seeds:
-        for env, noise, budget in settings:
-            for method in methods:
-                budget_m = None if method in NO_FEEDBACK else budget
-                run_id = f"{method}__{env}__noise{noise:g}__budget{'none' if budget_m is None else budget_m}__seed{seed}"
-                script, flags = scripts[method]
-                command = (args.python, script, "--exp-name", method, "--env-id", env, "--noise", f"{noise:g}")
-                if budget_m is not None:
-                    command += ("--max-feedback", str(budget_m))
-                command += ("--seed", str(seed), "--threads", str(args.threads)) + tuple(flags) + extra
-                runs.setdefault(run_id, Run(run_id, method, env, noise, budget_m, seed, command))
-    return list(runs.values())
+    for part in PRESETS[args.preset] if args.preset else (None,):
+        settings, methods, seeds = grid(args, part)
+        scripts = {m: script_of(m, args.script_dir) for m in methods}
+        for seed in seeds:
+            for env, noise, budget in settings:
+                for method in methods:
+                    budget_m = None if method in NO_FEEDBACK else budget
+                    run_id = f"{method}__{env}__noise{noise:g}__budget{'none' if budget_m is None else budget_m}__seed{seed}"
+                    script, flags = scripts[method]
+                    command = (args.python, script, "--exp-name", method, "--env-id", env, "--noise", f"{noise:g}")
+                    if budget_m is not None:
+                        command += ("--max-feedback", str(budget_m))
+                    command += ("--seed", str(seed), "--threads", str(args.threads)) + tuple(flags)
+                    if part is not None:
+                        command += part.flags + (() if budget_m is None else part.feedback_flags)
+                    runs.setdefault(run_id, Run(run_id, method, env, noise, budget_m, seed, command + extra))
+    return sorted(runs.values(), key=lambda run: run.seed)  # stable: within a seed, the preset's order
 
 
 def marker(log_dir: str, run_id: str, kind: str) -> str:
     return os.path.join(log_dir, f"{run_id}.{kind}")
+
+
+def results_dir_of(args: Args) -> Optional[str]:
+    return args.results_dir or (CPU_STUDY_RESULTS if args.preset == "cpu-study" else None)
+
+
+def is_done(run: Run, args: Args) -> bool:
+    """A `.done` marker in the log folder, or a finished run kept in the results folder."""
+    results = results_dir_of(args)
+    return os.path.exists(marker(args.log_dir, run.run_id, "done")) or (
+        results is not None and os.path.exists(os.path.join(results, run.run_id, "done"))
+    )
+
+
+def git_commit() -> str:
+    """The commit of the scripts, `+dirty` when they have uncommitted changes (recorded with every run)."""
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True, check=True)
+        return commit.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown (not a git checkout)"
 
 
 # ---------------------------------------------------------------- running one run (shared by both back-ends)
@@ -237,6 +294,9 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
     for kind in ("done", "failed"):
         if os.path.exists(spec["log"][:-4] + "." + kind):
             os.remove(spec["log"][:-4] + "." + kind)
+    if spec["results"]:  # a fresh scratch folder: the run's only `runs/*` is this run's
+        shutil.rmtree(spec["cwd"], ignore_errors=True)
+        os.makedirs(spec["cwd"])
     env = dict(os.environ, OMP_NUM_THREADS=str(spec["threads"]), MKL_NUM_THREADS=str(spec["threads"]),
                PYTHONUNBUFFERED="1")
     if gpu is not None:
@@ -244,7 +304,8 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
     with open(spec["log"], "w") as log:
         log.write(f"# run {spec['run_id']}\n# command: {shlex.join(spec['command'])}\n"
                   f"# cwd: {spec['cwd']}\n# CUDA_VISIBLE_DEVICES={env.get('CUDA_VISIBLE_DEVICES', '(unset)')} "
-                  f"OMP_NUM_THREADS={spec['threads']}\n# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+                  f"OMP_NUM_THREADS={spec['threads']}\n# git commit {spec['commit']}\n"
+                  f"# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         log.flush()
         process = subprocess.Popen(spec["command"], cwd=spec["cwd"], env=env, stdout=log, stderr=subprocess.STDOUT,
                                    stdin=subprocess.DEVNULL)
@@ -257,8 +318,16 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     kind = "done" if returncode == 0 else "failed"
+    summary = f"exit code {returncode}\nseconds {seconds:.0f}\ncommand {shlex.join(spec['command'])}\n"
     with open(spec["log"][:-4] + "." + kind, "w") as f:
-        f.write(f"exit code {returncode}\nseconds {seconds:.0f}\ncommand {shlex.join(spec['command'])}\n")
+        f.write(summary + f"git commit {spec['commit']}\n")
+    if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` file comes last
+        os.makedirs(spec["results"], exist_ok=True)
+        for events in glob.glob(os.path.join(spec["cwd"], "runs", "*", "events.out.tfevents.*")):
+            shutil.copy2(events, spec["results"])
+        shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
+        with open(os.path.join(spec["results"], "done"), "w") as f:
+            f.write(summary + f"git commit {spec['commit']}\n")
 
 
 def run_group(specs: list) -> list:
@@ -274,8 +343,11 @@ def run_group(specs: list) -> list:
 
 def spec_of(run: Run, args: Args) -> dict:
     """What a job needs to know about a run (plain data: it travels to SLURM jobs)."""
-    return dict(run_id=run.run_id, command=list(run.command), cwd=os.getcwd(), threads=args.threads,
-                log=os.path.abspath(marker(args.log_dir, run.run_id, "log")))
+    results = results_dir_of(args)
+    return dict(run_id=run.run_id, command=list(run.command), threads=args.threads, commit=git_commit(),
+                log=os.path.abspath(marker(args.log_dir, run.run_id, "log")),
+                cwd=os.path.abspath(os.path.join(args.log_dir, "scratch", run.run_id)) if results else os.getcwd(),
+                results=os.path.abspath(os.path.join(results, run.run_id)) if results else None)
 
 
 def describe(returncode: int) -> str:
@@ -392,7 +464,7 @@ def main(args: Args) -> int:
     if args.runs_per_gpu < 1 or args.threads < 1 or (args.workers is not None and args.workers < 1):
         fail("--runs-per-gpu, --threads and --workers must be >= 1")
     runs = expand(args)
-    done = [] if args.force else [r for r in runs if os.path.exists(marker(args.log_dir, r.run_id, "done"))]
+    done = [] if args.force else [r for r in runs if is_done(r, args)]
     done_ids = {r.run_id for r in done}
     todo = [r for r in runs if r.run_id not in done_ids]
     if args.dry_run:

@@ -146,6 +146,10 @@ class Args:
     """a round's training stops early once the mean training accuracy exceeds this"""
     relabel_batch_size: int = 16384
     """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
+    diagnostic_transitions: int = 10_000
+    """stored transitions (at fixed relative positions in the buffer) behind `pbrl/reward_true_corr`"""
+    diagnostic_pairs: int = 256
+    """fresh segment pairs per round behind `pbrl/heldout_accuracy` (oracle labels, never trained on nor counted)"""
     teacher_beta: float = -1.0
     """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
     teacher_gamma: float = 1.0
@@ -197,7 +201,8 @@ def validate_args(args: Args) -> None:
         if not 0.0 <= getattr(args, flag) <= 1.0:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     for flag in ("episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq", "eval_freq",
-                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
+                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq",
+                 "diagnostic_transitions", "diagnostic_pairs"):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -214,6 +219,35 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
             return run_name
         except FileExistsError:
             unix_time += 1
+
+
+# TRY NOT TO MODIFY: console progress
+class Progress:
+    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
+    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
+    only, so it adds no host sync to the training loop."""
+
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
+        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+        self.phase, self.time, self.step, self.eval_return = None, time.time(), 0, None
+
+    def update(self, step: int, phase: str, feedback: Optional[int] = None):
+        now = time.time()
+        if phase == self.phase and now - self.time < self.interval:
+            return
+        sps = (step - self.step) / (now - self.time) if step > self.step else 0.0
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
+        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
+        if self.budget is not None:
+            line += f" | feedback {feedback}/{self.budget}"
+        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
+        print(line, flush=True)
+        self.phase, self.time, self.step = phase, now, step
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
 
 
 # TRY NOT TO MODIFY: replay and preference storage, on the device
@@ -239,12 +273,14 @@ class ReplayBuffer:
         self.next_obs = torch.zeros((capacity, obs_dim), device=device)
         self.actions = torch.zeros((capacity, act_dim), device=device)
         self.rewards = torch.zeros(capacity, device=device)
+        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
         self.dones = torch.zeros(capacity, device=device)
         self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
 
-    def add(self, obs, action, next_obs, terminated: bool, reward):
+    def add(self, obs, action, next_obs, terminated: bool, true_reward: float, reward):
         self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
-        self.dones[self.pos], self.rewards[self.pos] = float(terminated), reward
+        self.dones[self.pos], self.true_rewards[self.pos] = float(terminated), true_reward
+        self.rewards[self.pos] = reward
         self.pos = (self.pos + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
@@ -358,8 +394,10 @@ class Actor(nn.Module):
     def get_action(self, obs):
         """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
         mean, log_std = self(obs)
-        x = mean + log_std.exp() * torch.randn_like(mean)
-        log_prob = torch.distributions.Normal(mean, log_std.exp()).log_prob(x)
+        eps = torch.randn_like(mean)
+        x = mean + log_std.exp() * eps
+        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
         log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
         return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
@@ -479,6 +517,30 @@ def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, s
     return segments[top], true_rewards[top]
 
 
+def optimizer_steps(optimizer) -> int:
+    """Optimiser steps taken so far, from Adam's own count (a wrapper's inner `optimizer` is read through)."""
+    states = getattr(optimizer, "optimizer", optimizer).state.values()
+    return max((int(state["step"]) for state in states), default=0)
+
+
+@torch.no_grad()
+def reward_diagnostics(model: RewardEnsemble, rb: ReplayBuffer, store: EpisodeStore, positions: torch.Tensor,
+                       n_pairs: int, segment_size: int, noise=None) -> dict:
+    """How well the ensemble mean tracks the true reward, for the logs only: Pearson correlation on the stored
+    transitions at fixed relative `positions` of the buffer, and the preference accuracy against the oracle teacher
+    on `n_pairs` fresh segment pairs (never added to the dataset, never counted in the budget; ties left out)."""
+    idx = (positions * rb.size).long()
+    predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
+    correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
+    segments, true_rewards = store.sample_segments(n_pairs, segment_size)
+    returns = model(read_noisy(segments, noise).flatten(0, 2)).mean(0).view(*segments.shape[:3]).sum(-1)
+    _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
+    strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
+    accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
+    correlation, accuracy = torch.stack([correlation, accuracy]).tolist()
+    return {"reward_true_corr": correlation, "heldout_accuracy": accuracy}
+
+
 class RunningMeanStd:
     """Running mean and variance over batches (Chan et al.'s parallel merge), kept on the device."""
 
@@ -594,6 +656,9 @@ if __name__ == "__main__":
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
+    # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
+    diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
+    diagnostic_positions = diagnostic_positions.to(device)
     recent_returns = deque(maxlen=10)  # true returns of the last training episodes, for the teacher's margin
     total_feedback = labeled_feedback = sac_updates = 0
 
@@ -656,7 +721,16 @@ if __name__ == "__main__":
             writer.add_scalar("pbrl/reward_loss", loss, global_step)
             writer.add_scalar("pbrl/reward_accuracy", accuracy, global_step)
             writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
+            stop_if_not_finite({"pbrl/reward_loss": loss})
         rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
+        writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):  # training's draws unchanged
+            torch.manual_seed(args.seed + global_step)  # fresh pairs every round, the same ones in a rerun
+            diagnostics = reward_diagnostics(
+                reward_model, rb, episodes, diagnostic_positions, args.diagnostic_pairs, args.segment_size, noise
+            )
+        for name, value in diagnostics.items():
+            writer.add_scalar(f"pbrl/{name}", value, global_step)
 
     def save_checkpoint():
         checkpoint = {
@@ -673,13 +747,27 @@ if __name__ == "__main__":
         }
         torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
 
+    def stop_if_not_finite(values: dict):
+        """A non-finite value ends the run, exit code 1, with one line naming it; the checkpoint is written first."""
+        bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
+        if bad is not None:
+            save_checkpoint()
+            writer.close()
+            raise SystemExit(
+                f"{args.exp_name}: error: non-finite {bad} ({values[bad]}) at step {global_step}; "
+                f"checkpoint for debugging: runs/{run_name}/{args.exp_name}.cleanrl_model"
+            )
+
     # TRY NOT TO MODIFY: start the game
     start_time = time.time()
+    progress = Progress(args.total_timesteps, args.max_feedback)
     obs, _ = env.reset(seed=args.seed)
     obs = torch.as_tensor(obs, device=device)
     episode_return, episode_length, losses = 0.0, 0, {}
     pebble_start = args.learning_starts + args.unsup_steps
     for global_step in range(args.total_timesteps):
+        phase = "random" if global_step < args.learning_starts else "pre-training" if global_step < pebble_start else "PbRL"
+        progress.update(global_step, phase, total_feedback)
         # ALGO LOGIC: put action logic here
         if global_step < args.learning_starts:
             action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
@@ -688,11 +776,13 @@ if __name__ == "__main__":
                 action = actor.get_action(obs.unsqueeze(0))[0][0]
 
         # TRY NOT TO MODIFY: execute the game and log data.
-        next_obs, true_reward, terminated, truncated, _ = env.step(action.cpu().numpy())
+        env_action = action.cpu().numpy()
+        stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
+        next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
         next_obs = torch.as_tensor(next_obs, device=device)
         with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
             predicted_reward = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0]
-        rb.add(obs, action, next_obs, terminated, predicted_reward)
+        rb.add(obs, action, next_obs, terminated, float(true_reward), predicted_reward)
         episodes.add(obs, action, float(true_reward))
         episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
         obs = next_obs  # CRUCIAL step easy to overlook
@@ -723,8 +813,10 @@ if __name__ == "__main__":
                 sac_update(rb.sample(args.batch_size))
 
             if global_step % args.log_freq == 0:
-                for name, value in zip(losses, torch.stack(list(losses.values())).tolist()):
-                    writer.add_scalar(f"losses/{name}", value, global_step)
+                logged = dict(zip([f"losses/{name}" for name in losses], torch.stack(list(losses.values())).tolist()))
+                for tag, value in logged.items():
+                    writer.add_scalar(tag, value, global_step)
+                stop_if_not_finite(logged)
 
         if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
             eval_return = float(evaluate(actor, eval_envs, device).mean())
@@ -736,6 +828,8 @@ if __name__ == "__main__":
                 f"feedback={total_feedback}/{args.max_feedback} labels={labeled_feedback}",
                 flush=True,
             )
+            progress.eval_return = eval_return
+            stop_if_not_finite({"eval/episodic_return": eval_return})
             if args.save_model:
                 save_checkpoint()
 

@@ -324,7 +324,7 @@ def _fill_replay(rb, n, obs_dim, act_dim, seed=12):
         obs = torch.randn(obs_dim, generator=g)
         act = torch.rand(act_dim, generator=g) * 2 - 1
         nxt = torch.randn(obs_dim, generator=g)
-        rb.add(obs, act, nxt, False, float(i))
+        rb.add(obs, act, nxt, False, -float(i), float(i))  # true reward -i (never read by the agent), reward i
         added.append((obs, act, nxt))
     return added
 
@@ -347,6 +347,7 @@ def test_relabel_whole_buffer_after_wrap():
     # the stored rows are the last 50 transitions, at position i % capacity
     for i in range(80, 130):
         assert torch.equal(rb.obs[i % cap], added[i][0]) and torch.equal(rb.actions[i % cap], added[i][1])
+        assert rb.true_rewards[i % cap] == -i and rb.rewards[i % cap] == i  # the true reward is kept beside
     rb.rewards[:] = float("nan")
     reward_fn, calls = _reward_fn_factory(obs_dim)
     rb.relabel(reward_fn, chunk=7)
@@ -354,6 +355,7 @@ def test_relabel_whole_buffer_after_wrap():
     expected = rb.actions.sum(1) + 0.1 * rb.obs.sum(1)
     torch.testing.assert_close(rb.rewards, expected)
     assert sum(calls) == cap and max(calls) <= 7
+    assert torch.equal(rb.true_rewards, -torch.tensor([float(i) for i in range(100, 130)] + [float(i) for i in range(80, 100)]))
 
 
 def test_relabel_before_wrap_touches_only_size_rows():

@@ -31,9 +31,20 @@ COMMON_TAGS = [
     "losses/qf1_loss", "losses/qf2_loss", "losses/qf_loss", "losses/actor_loss", "losses/alpha", "losses/alpha_loss",
     "losses/state_entropy_reward",
     "pbrl/total_feedback", "pbrl/labeled_feedback", "pbrl/reward_loss", "pbrl/reward_accuracy", "pbrl/reward_epochs",
+    "pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy",
 ]
 SPARSE_NETS = ["actor", "qf1", "qf2", "reward0", "reward1", "reward2"]
 SPARSE_TAGS = [f"sparse/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_degree", "noise_degree", "relevant_active_frac")]
+TOPOLOGY_TAGS = [f"sparse/{net}/topology_updates" for net in SPARSE_NETS]  # Static logs 0
+
+
+def check_diagnostics(values):
+    """The PbRL diagnostics of every feedback round: cumulative reward steps, correlation, held-out accuracy."""
+    steps = values["pbrl/reward_steps"]
+    assert len(steps) == len(values["pbrl/total_feedback"]) and steps[0] > 0
+    assert all(a <= b for a, b in zip(steps, steps[1:])), steps  # cumulative
+    assert all(-1 <= v <= 1 for v in values["pbrl/reward_true_corr"])
+    assert all(0 <= v <= 1 for v in values["pbrl/heldout_accuracy"])
 
 
 def run_script(script, args, cwd, check=True):
@@ -60,7 +71,7 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 
-    expected = COMMON_TAGS + (SPARSE_TAGS if script in SPARSE_SCRIPTS else [])
+    expected = COMMON_TAGS + (SPARSE_TAGS + TOPOLOGY_TAGS if script in SPARSE_SCRIPTS else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag in expected:
@@ -71,6 +82,12 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     assert values["pbrl/labeled_feedback"][-1] == 20
     assert len(values["eval/episodic_return"]) == 3  # at 1000, 2000, 3000
     assert result.stdout.count("eval_return=") == 3
+    check_diagnostics(values)
+    # progress: a line at every phase change, with ETA, before the first evaluation
+    progress = [line for line in result.stdout.splitlines() if line.startswith("progress:")]
+    assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
+    assert result.stdout.index("progress:") < result.stdout.index("eval_return=")
+    assert "ETA" in progress[1] and "feedback 0/20" in progress[1]
 
     checkpoint = torch.load(os.path.join(run_dir, "smoke.cleanrl_model"), weights_only=False)
     for key in ("args", "actor", "qf1", "qf2", "reward_models", "obs_dim_real", "obs_dim", "act_dim"):
@@ -100,6 +117,8 @@ def test_smoke_reaches_every_phase(script, tmp_path):
             assert torch.all(checkpoint["reward_models"][e]["weights.0"][masks[f"reward{e}"] == 0] == 0)
         # topology updates happened: the reward members' connectivity moved between evaluations
         assert len(set(values["sparse/reward0/relevant_active_frac"])) > 1
+        # one reward topology update every 5 reward optimiser steps (the last round precedes the last evaluation)
+        assert values["sparse/reward0/topology_updates"][-1] == values["pbrl/reward_steps"][-1] // 5 > 0
 
 
 def test_same_seed_same_returns(tmp_path):

@@ -1,0 +1,114 @@
+"""A long run you can trust: no host sync in the hot loop, non-finite values stop the run, the log-probability."""
+import glob
+import math
+import os
+import runpy
+import sys
+
+import pytest
+import torch
+
+from test_scripts import ROOT, SPARSE_TINY, TINY, run_script
+
+import pebble  # noqa: E402
+
+# Tensor methods that read a tensor back to the host (a device sync on a GPU).
+HOST_READS = ["item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__"]
+# Functions of the training loop that must not read back: the SAC update and the replay buffer's add and sample.
+CHECKED = {"sac_update", "ReplayBuffer.add", "ReplayBuffer.sample"}
+
+
+def run_in_process_recording_host_reads(script, args, tmp_path, monkeypatch):
+    """Run `script` in this process with every host read recorded as (the checked function it came from, or None)."""
+    path = os.path.join(ROOT, script)
+    reads = []
+
+    def recording(name, original):
+        def wrapper(self, *a, **k):
+            caller = sys._getframe(1)
+            # torch's optimisers read their step counter, a host tensor even on a GPU: not a device sync
+            if f"{os.sep}torch{os.sep}optim{os.sep}" not in caller.f_code.co_filename:
+                frame, inside = caller, None
+                while frame is not None:
+                    if frame.f_code.co_filename == path:
+                        if frame.f_code.co_name == "rigl_update_":
+                            inside = None  # a topology update, once per period, not per step: tolerated
+                            break
+                        if frame.f_code.co_qualname in CHECKED:
+                            inside = frame.f_code.co_qualname
+                    frame = frame.f_back
+                reads.append((name, inside))
+            return original(self, *a, **k)
+
+        return wrapper
+
+    for name in HOST_READS:
+        monkeypatch.setattr(torch.Tensor, name, recording(name, getattr(torch.Tensor, name)))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", [path, *args])
+    runpy.run_path(path, run_name="__main__")
+    return reads
+
+
+SAC_TINY = ["--env-id", "cartpole-swingup", "--learning-starts", "200", "--episode-length", "100", "--eval-episodes", "1",
+            "--hidden-dim", "32", "--batch-size", "32", "--log-freq", "100", "--no-cuda"]
+
+
+@pytest.mark.parametrize("script", ["pebble.py", "r2n_pebble.py", "sac.py"])
+def test_sac_update_and_replay_buffer_never_read_back_to_the_host(script, tmp_path, monkeypatch):
+    args = (SAC_TINY if script == "sac.py" else TINY) + ["--total-timesteps", "800", "--eval-freq", "800"]
+    args += SPARSE_TINY if script == "r2n_pebble.py" else []
+    reads = run_in_process_recording_host_reads(script, args, tmp_path, monkeypatch)
+    assert ("cpu", None) in reads  # the guard is active: the action sent to the env is read back, outside them
+    offending = sorted({read for read in reads if read[1] is not None})
+    assert not offending, f"host reads inside the hot loop's functions: {offending}"
+
+
+@pytest.mark.parametrize("script", ["pebble.py", "sac.py"])
+def test_non_finite_loss_stops_the_run_with_one_line_and_a_checkpoint(script, tmp_path):
+    args = (SAC_TINY if script == "sac.py" else TINY) + ["--q-lr", "1e30", "--log-freq", "10", "--exp-name", "nan"]
+    result = run_script(script, args, tmp_path, check=False)
+    assert result.returncode == 1
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("nan: error: non-finite ") and " at step " in lines[0], lines[0]
+    quantity = lines[0].split("non-finite ")[1].split(" ")[0]
+    assert quantity.startswith(("losses/", "action", "eval/")), quantity
+    assert "eval_return=" not in result.stdout  # it stopped long before the first evaluation
+    (checkpoint,) = glob.glob(str(tmp_path / "runs" / "*" / "nan.cleanrl_model"))
+    assert "actor" in torch.load(checkpoint, weights_only=False)
+
+
+def test_log_probability_is_the_tanh_squashed_gaussian_density():
+    torch.manual_seed(0)
+    actor = pebble.Actor(7, 3, 16)
+    obs = torch.randn(64, 7) * 3
+    torch.manual_seed(1)
+    action, log_prob, deterministic = actor.get_action(obs)
+    torch.manual_seed(1)
+    mean, log_std = actor(obs)
+    x = mean + log_std.exp() * torch.randn_like(mean)
+    x64 = x.double()  # the reference in float64, where log(1 - tanh^2) does not underflow to -inf
+    normal = torch.distributions.Normal(mean.double(), log_std.exp().double(), validate_args=False)
+    expected = (normal.log_prob(x64) - torch.log(1 - torch.tanh(x64) ** 2)).sum(-1).float()
+    torch.testing.assert_close(action, torch.tanh(x))
+    torch.testing.assert_close(log_prob, expected, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(deterministic, torch.tanh(mean))
+    assert log_prob.requires_grad  # the actor loss differentiates through it
+
+
+def test_progress_duration_text():
+    assert pebble.Progress.duration(90) == "1m" and pebble.Progress.duration(3 * 3600 + 600) == "3h10m"
+    assert pebble.Progress.duration(50 * 3600) == "2d02h"
+
+
+def test_progress_prints_at_phase_changes_and_reports_sps_eta(capsys):
+    progress = pebble.Progress(total_steps=10_000, budget=400)
+    progress.update(0, "random", 0)
+    progress.time -= 40  # 1000 steps in 40 s: 25 SPS, 9000 steps left: 6 min
+    progress.update(1000, "pre-training", 0)
+    progress.eval_return = 12.34
+    progress.update(1001, "pre-training", 0)  # same phase, 0 s later: no line
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    assert lines[1] == "progress: step 1000/10000 (10%) | pre-training | 25 SPS | ETA 6m | feedback 0/400 | eval return -"
