@@ -291,6 +291,24 @@ def test_presets_expand_to_the_paper_grids():
     assert list(reward_only.command[-4:]) == ["--no-sparse-agent", "--total-timesteps", "100000", "--cuda"]
     assert "--no-sparse-reward" in by_id["r2n_pebble_agent_only__cheetah-run__noise0.9__budget1000__seed5"].command
 
+    study = grid(preset="cpu-study")
+    assert len(study) == len({r.run_id for r in study}) == 8 * 2 + 5 * 2 + 2 * 2 * 3 + 4 * 3
+    count = lambda method, noise: sorted(r.seed for r in study if r.method == method and r.noise == noise)  # noqa: E731
+    assert count("pebble", 0.9) == count("r2n_pebble", 0.9) == list(range(1, 9))
+    assert count("pebble", 0.95) == count("r2n_pebble", 0.95) == list(range(1, 6))
+    for method in ("sac", "anf_sac"):
+        assert count(method, 0.9) == count(method, 0.95) == [1, 2, 3]
+    for method in ("pebble_stored_noise", "r2n_pebble_stored_noise", "pebble_no_early_stop", "r2n_pebble_no_early_stop"):
+        assert count(method, 0.9) == [1, 2, 3] and count(method, 0.95) == []
+    assert [r.seed for r in study] == sorted(r.seed for r in study)  # seed-major over the preset's parts
+    by_id = {r.run_id: r for r in study}
+    scale = ["--total-timesteps", "80000", "--hidden-dim", "256", "--batch-size", "128"]
+    pebble_run = by_id["r2n_pebble_no_early_stop__cartpole-swingup__noise0.9__budget400__seed2"].command
+    assert list(pebble_run[-12:]) == ["--reward-stop-accuracy", "1.1", *scale, "--feedback-freq", "2000",
+                                      "--queries-per-round", "25"]
+    assert list(by_id["sac__cartpole-swingup__noise0.95__budgetnone__seed3"].command[-6:]) == scale  # no feedback flags
+    assert "--no-noise-resample" in by_id["pebble_stored_noise__cartpole-swingup__noise0.9__budget400__seed1"].command
+
 
 def test_free_grids_and_overrides():
     assert len(grid(preset="main", env_ids=("cheetah-run",), seeds=(1, 2))) == 6 * 2
@@ -441,7 +459,7 @@ def test_slurm_job_script(fake_scripts, tmp_path, monkeypatch, capsys):
 
 
 @needs_analysis
-def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch):
+def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch, capsys):
     """One tiny real pebble.py run (TINY from test_scripts) launched by benchmark.py, then read by analyze.py."""
     monkeypatch.chdir(tmp_path)
     tiny, skip = [], {"--env-id", "--noise", "--max-feedback"}
@@ -449,12 +467,21 @@ def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch
         if TINY[i] not in skip:
             tiny += TINY[i:i + 2]
     started = time.time()
-    code = benchmark.main(benchmark.Args(methods=("pebble",), env_ids=("cartpole-swingup",), noises=(0.9,),
-                                         budgets=(20,), seeds=(5,), extra=shlex.join(tiny)))
-    log = open("logs/pebble__cartpole-swingup__noise0.9__budget20__seed5.log").read()
+    args = benchmark.Args(methods=("pebble",), env_ids=("cartpole-swingup",), noises=(0.9,), budgets=(20,), seeds=(5,),
+                          extra=shlex.join(tiny), results_dir="results")
+    code = benchmark.main(args)
+    run_id = "pebble__cartpole-swingup__noise0.9__budget20__seed5"
+    log = open(f"logs/{run_id}.log").read()
     assert code == 0, log
     assert "step=3000 eval_return=" in log and time.time() - started < 300
-    assert analyze.main(analyze.Args(log_dirs=("runs",), output_dir="analysis")) == 0
+    # the results folder keeps the event file, the log and a `done` file naming the commit; no checkpoint
+    kept = sorted(os.listdir(f"results/{run_id}"))
+    assert len(kept) == 3 and kept[0] == "done" and kept[1].startswith("events.out.tfevents.") and kept[2] == "log.txt"
+    assert "git commit " in open(f"results/{run_id}/done").read() and "# git commit " in log
+    assert not os.path.exists("runs")  # the run worked in its own scratch folder under logs/
+    os.remove(f"logs/{run_id}.done")  # only the kept results say it is finished now
+    assert benchmark.main(args) == 0 and "nothing to run" in capsys.readouterr().out
+    assert analyze.main(analyze.Args(log_dirs=("results",), output_dir="analysis")) == 0
     (row,) = read_csv("analysis/final_return.csv")
     assert (row["task"], row["noise"], row["budget"], row["method"], row["seeds"], row["last_step"]) == (
         "cartpole-swingup", "0.9", "20", "pebble", "1", "3000")
