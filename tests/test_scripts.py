@@ -180,3 +180,19 @@ def test_runs_started_in_the_same_second_get_their_own_folders(script, tmp_path,
     names = [module.make_run_folder("cheetah-run", "pebble", 1) for _ in range(3)]
     assert names == [f"cheetah-run__pebble__1__{1_700_000_000 + i}" for i in range(3)]
     assert sorted(os.listdir(tmp_path / "runs")) == names
+
+
+def test_diagnostics_leave_training_unchanged(tmp_path):
+    """The diagnostics draw from a random stream of their own: drawing far fewer of them changes nothing else."""
+    args = TINY + ["--total-timesteps", "1500", "--eval-freq", "750"]
+    runs = {}
+    for name, sizes in (("many", []), ("few", ["--diagnostic-pairs", "3", "--diagnostic-transitions", "5"])):
+        run_script("pebble.py", args + sizes + ["--exp-name", name], tmp_path)
+        (run_dir,) = glob.glob(str(tmp_path / "runs" / f"*{name}*"))
+        runs[name] = (scalars(run_dir), torch.load(os.path.join(run_dir, f"{name}.cleanrl_model"), weights_only=False))
+    (many, many_checkpoint), (few, few_checkpoint) = runs["many"], runs["few"]
+    assert many["eval/episodic_return"] == few["eval/episodic_return"]
+    assert many["pbrl/reward_loss"] == few["pbrl/reward_loss"]
+    for name, weight in many_checkpoint["actor"].items():
+        assert torch.equal(weight, few_checkpoint["actor"][name]), name
+    assert many["pbrl/heldout_accuracy"] != few["pbrl/heldout_accuracy"]  # the diagnostics themselves did differ
