@@ -465,6 +465,15 @@ def safe_name(text) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", str(text))
 
 
+def curve_panels(task_groups) -> list:
+    """[((noise, budget), groups)]: one panel per noise and budget of a task; the oracles (no budget) join every panel
+    of their noise, and get panels of their own only at a noise without PbRL runs."""
+    with_budget = {g.key[1] for g in task_groups if g.key[2] is not None}
+    settings = sorted({(g.key[1], g.key[2]) for g in task_groups if g.key[2] is not None or g.key[1] not in with_budget},
+                      key=lambda s: (-1 if s[0] is None else s[0], -1 if s[1] is None else s[1]))
+    return [(s, [g for g in task_groups if g.key[1] == s[0] and g.key[2] in (s[1], None)]) for s in settings]
+
+
 def write_plots(groups, args: Args) -> list:
     """Learning curves per task (one panel per noise/budget) and connectivity plots per sparse group; the paths."""
     import matplotlib
@@ -505,17 +514,17 @@ def write_plots(groups, args: Args) -> list:
         by_task[g.key[0]].append(g)
     os.makedirs(os.path.join(args.output_dir, "curves"), exist_ok=True)
     for task, task_groups in by_task.items():
-        settings = sorted({(g.key[1], g.key[2]) for g in task_groups},
-                          key=lambda s: (-1 if s[0] is None else s[0], -1 if s[1] is None else s[1]))
-        ncols = min(3, len(settings))
-        nrows = math.ceil(len(settings) / ncols)
+        panels = curve_panels(task_groups)
+        ncols = min(3, len(panels))
+        nrows = math.ceil(len(panels) / ncols)
         fig, axes = plt.subplots(nrows, ncols, figsize=(max(6.0, 5 * ncols), 3.8 * nrows), squeeze=False)
-        for ax, (noise, budget) in zip(axes.flat, settings):
-            for g in sorted((g for g in task_groups if (g.key[1], g.key[2]) == (noise, budget)),
-                            key=lambda g: methods.index(g.key[3])):
-                band(ax, g.steps, g.curves, f"{g.key[3]} (n={len(g.runs)})", color=colour[g.key[3]])
+        for ax, ((noise, budget), panel_groups) in zip(axes.flat, panels):
+            for g in sorted(panel_groups, key=lambda g: methods.index(g.key[3])):
+                oracle = g.key[2] is None and budget is not None
+                band(ax, g.steps, g.curves, f"{g.key[3]}{' (true reward)' if oracle else ''} (n={len(g.runs)})",
+                     color=colour[g.key[3]], linestyle="--" if oracle else "-")
             style_axis(ax, f"noise {noise}, " + ("no feedback" if budget is None else f"budget {budget}"), "evaluation return")
-        save_figure(fig, axes, len(settings), f"{task}: mean ± standard error over seeds", {},
+        save_figure(fig, axes, len(panels), f"{task}: mean ± standard error over seeds", {},
                     os.path.join(args.output_dir, "curves", f"{safe_name(task)}.png"))
 
     for g in groups:

@@ -488,3 +488,14 @@ def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch
     last_eval = float(log.split("step=3000 eval_return=")[1].split()[0])
     assert float(row["mean"]) == pytest.approx(last_eval, abs=0.006) and row["se"] == "nan"
     assert os.path.getsize("analysis/curves/cartpole-swingup.png") > 0
+
+
+def test_oracles_share_the_axes_of_the_pbrl_methods_of_their_noise():
+    group = lambda noise, budget, method: analyze.Group(("cartpole-swingup", noise, budget, method), [])  # noqa: E731
+    sac9, sac95, sac5 = group(0.9, None, "sac"), group(0.95, None, "sac"), group(0.5, None, "sac")
+    pebble9, r2n9, pebble9_1000, r2n95 = (group(0.9, 400, "pebble"), group(0.9, 400, "r2n_pebble"),
+                                          group(0.9, 1000, "pebble"), group(0.95, 400, "r2n_pebble"))
+    panels = analyze.curve_panels([sac9, pebble9, r2n9, pebble9_1000, sac95, r2n95, sac5])
+    assert [setting for setting, _ in panels] == [(0.5, None), (0.9, 400), (0.9, 1000), (0.95, 400)]
+    assert [[g.key[3] for g in groups] for _, groups in panels] == [
+        ["sac"], ["sac", "pebble", "r2n_pebble"], ["sac", "pebble"], ["sac", "r2n_pebble"]]
