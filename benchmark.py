@@ -322,7 +322,8 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     with open(spec["log"][:-4] + "." + kind, "w") as f:
         f.write(summary + f"git commit {spec['commit']}\n")
     if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` file comes last
-        os.makedirs(spec["results"], exist_ok=True)
+        shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
+        os.makedirs(spec["results"])
         for events in glob.glob(os.path.join(spec["cwd"], "runs", "*", "events.out.tfevents.*")):
             shutil.copy2(events, spec["results"])
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
