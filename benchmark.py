@@ -12,7 +12,11 @@ Choices where the issue is silent:
 - A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
   with code 0 (a failure writes `{run_id}.failed` with the exit code instead). Finished runs are skipped by the next
   call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
-  is cheap, exact, and works for runs whose folder name carries only env, method, seed and time.
+  is cheap, exact, and works for runs whose folder name carries only env, method, seed and time. With a results
+  folder (`--results-dir`, `cpu-study`), a run also counts as finished when `{results_dir}/{run_id}/done` exists:
+  the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
+  in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra`: a results
+  folder is for one configuration.
 - Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
@@ -151,7 +155,8 @@ class Args:
     threads: int = 1
     """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""
     log_dir: str = "logs"
-    """per-run logs `{run_id}.log` and markers `{run_id}.done` / `{run_id}.failed`"""
+    """per-run logs `{run_id}.log` and markers `{run_id}.done` / `{run_id}.failed` (and, with a results folder, each
+    run's working folder `scratch/{run_id}`, which keeps its checkpoint)"""
     results_dir: Optional[str] = None
     """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
     `done` file naming the git commit; a run with that file is finished (default with `--preset cpu-study`:
@@ -279,8 +284,8 @@ def git_commit() -> str:
     """The commit of the scripts, `+dirty` when they have uncommitted changes (recorded with every run)."""
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                               text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "*.py", "pyproject.toml"],
+                               cwd=ROOT, capture_output=True, text=True, check=True)
         return commit.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown (not a git checkout)"
@@ -319,16 +324,17 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     kind = "done" if returncode == 0 else "failed"
     summary = f"exit code {returncode}\nseconds {seconds:.0f}\ncommand {shlex.join(spec['command'])}\n"
-    with open(spec["log"][:-4] + "." + kind, "w") as f:
-        f.write(summary + f"git commit {spec['commit']}\n")
-    if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` file comes last
+    summary += f"git commit {spec['commit']}\n"
+    if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
         os.makedirs(spec["results"])
         for events in glob.glob(os.path.join(spec["cwd"], "runs", "*", "events.out.tfevents.*")):
             shutil.copy2(events, spec["results"])
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
         with open(os.path.join(spec["results"], "done"), "w") as f:
-            f.write(summary + f"git commit {spec['commit']}\n")
+            f.write(summary)
+    with open(spec["log"][:-4] + "." + kind, "w") as f:
+        f.write(summary)
 
 
 def run_group(specs: list) -> list:
@@ -482,7 +488,8 @@ def main(args: Args) -> int:
         return 0
     os.makedirs(args.log_dir, exist_ok=True)
     if done:
-        print(f"skipping {len(done)} finished runs (markers in {args.log_dir}/; --force reruns them)")
+        print(f"skipping {len(done)} finished runs (markers in {args.log_dir}/"
+              + (f" or {results_dir_of(args)}/" if results_dir_of(args) else "") + "; --force reruns them)")
     if not todo:
         print("nothing to run")
         return 0

@@ -146,13 +146,13 @@ class Progress:
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
         self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.time(), 0, None
+        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
 
     def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.time()
+        now = time.monotonic()
         if phase == self.phase and now - self.time < self.interval:
             return
-        sps = (step - self.step) / (now - self.time) if step > self.step else 0.0
+        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
         line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
         line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
         if self.budget is not None:
@@ -271,6 +271,8 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
+        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
+            return np.full(len(envs), np.nan)
         for i in np.flatnonzero(running):
             obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
             returns[i] += reward

@@ -355,7 +355,7 @@ def test_relabel_whole_buffer_after_wrap():
     expected = rb.actions.sum(1) + 0.1 * rb.obs.sum(1)
     torch.testing.assert_close(rb.rewards, expected)
     assert sum(calls) == cap and max(calls) <= 7
-    assert torch.equal(rb.true_rewards, -torch.tensor([float(i) for i in range(100, 130)] + [float(i) for i in range(80, 100)]))
+    assert torch.equal(rb.true_rewards, -torch.tensor([*range(100, 130), *range(80, 100)], dtype=torch.float32))
 
 
 def test_relabel_before_wrap_touches_only_size_rows():

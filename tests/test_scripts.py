@@ -3,6 +3,7 @@ import glob
 import importlib.util
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -87,7 +88,7 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     progress = [line for line in result.stdout.splitlines() if line.startswith("progress:")]
     assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
     assert result.stdout.index("progress:") < result.stdout.index("eval_return=")
-    assert "ETA" in progress[1] and "feedback 0/20" in progress[1]
+    assert re.search(r"\| \d+ SPS \| ETA \d+m \|", progress[1]) and "feedback 0/20" in progress[1], progress[1]
 
     checkpoint = torch.load(os.path.join(run_dir, "smoke.cleanrl_model"), weights_only=False)
     for key in ("args", "actor", "qf1", "qf2", "reward_models", "obs_dim_real", "obs_dim", "act_dim"):
