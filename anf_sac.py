@@ -32,6 +32,7 @@ import importlib.util
 import math
 import os
 import random
+import signal
 import time
 from dataclasses import dataclass
 from typing import Literal, NamedTuple, Optional
@@ -71,6 +72,12 @@ class Args:
     """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
     log_freq: int = 1000
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+    run_name: Optional[str] = None
+    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    checkpoint_freq: int = 10_000
+    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
+    keep_state: bool = False
+    """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
 
     # Environment arguments
     env_id: str = "cheetah-run"
@@ -132,6 +139,10 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
+        raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
+    if args.checkpoint_freq < 1:
+        raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
     if args.buffer_size < args.batch_size:
         raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
     if not 0.0 <= args.agent_sparsity < 1.0:
@@ -187,6 +198,81 @@ class Progress:
         return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
 
 
+# TRY NOT TO MODIFY: the training state `state.pt`, for exact resume (README: "Resuming a run")
+RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
+                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+
+
+def open_run(args) -> tuple:
+    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    if args.run_name is None:
+        return make_run_folder(args.env_id, args.exp_name, args.seed), None
+    path = f"runs/{args.run_name}/state.pt"
+    if not os.path.exists(path):
+        if os.path.exists(f"runs/{args.run_name}"):
+            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
+                             "finished, or stopped before its first state); choose another name or move the folder")
+        os.makedirs(f"runs/{args.run_name}")
+        return args.run_name, None
+    try:
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+    except Exception as e:  # not a state file, or a truncated one
+        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+    changed = [f"--{name.replace('_', '-')} {state['args'].get(name)} (now {value})" for name, value in vars(args).items()
+               if name not in RESUMABLE_FLAGS and state["args"].get(name) != value]
+    if changed:
+        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
+                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
+    return args.run_name, state
+
+
+def save_atomically(state: dict, path: str):
+    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    with open(f"{path}.tmp", "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(f"{path}.tmp", path)
+
+
+def state_of(obj):
+    """A tensor itself, `obj.state_dict()`, or for a plain object (episode store, statistics) its tensors and numbers."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach()
+    if hasattr(obj, "state_dict"):
+        return obj.state_dict()
+    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, int, float))}
+
+
+@torch.no_grad()
+def load_state_(obj, state):
+    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
+    if isinstance(obj, torch.Tensor):
+        obj.copy_(state)
+    elif hasattr(obj, "load_state_dict"):
+        obj.load_state_dict(state)
+    else:
+        for name, value in state.items():
+            if isinstance(value, torch.Tensor):
+                getattr(obj, name).copy_(value)
+            else:
+                setattr(obj, name, value)
+
+
+def rng_states(device: torch.device) -> dict:
+    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
+
+
+def set_rng_states(states: dict, device: torch.device):
+    random.setstate(states["python"])
+    np.random.set_state(states["numpy"])
+    torch.set_rng_state(states["torch"])
+    if states["cuda"] is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(states["cuda"], device)
+
+
 # TRY NOT TO MODIFY: replay storage, on the device
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
     """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
@@ -225,6 +311,22 @@ class ReplayBuffer:
         idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
         obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
         return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
+
+    def state_dict(self) -> dict:
+        """The stored rows only, and `next_obs` only where it is not the next row's `obs` (episode ends, newest row)."""
+        n = self.size
+        rows = {name: x[:n] if n == len(x) else x[:n].clone()  # a slice alone would save the whole preallocation
+                for name, x in vars(self).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
+        own = torch.ones(n, dtype=torch.bool, device=self.obs.device)
+        own[:-1] = (self.next_obs[: n - 1].view(torch.int32) != self.obs[1:n].view(torch.int32)).any(1)  # bitwise
+        return {"pos": self.pos, "size": n, "rows": rows, "own_next_obs": own, "next_obs": self.next_obs[:n][own]}
+
+    def load_state_dict(self, state: dict):
+        self.pos, self.size, n = state["pos"], state["size"], state["size"]
+        for name, x in state["rows"].items():
+            getattr(self, name)[:n] = x
+        self.next_obs[: n - 1] = self.obs[1:n]
+        self.next_obs[:n][state["own_next_obs"].to(self.obs.device)] = state["next_obs"].to(self.obs.device)
 
 
 # ALGO LOGIC: initialize agent here:
@@ -372,6 +474,17 @@ class SparseOptimizer:
             rigl_update_(self.layers[name], self.masks[name], grad, self.drop_fraction,
                          [state["exp_avg"], state["exp_avg_sq"]])
 
+    def state_dict(self) -> dict:
+        """The inner optimizer's state, the masks and the counters (the weights are saved with their networks)."""
+        counters = {name: value for name, value in vars(self).items() if isinstance(value, int)}
+        return {"optimizer": self.optimizer.state_dict(), "masks": self.masks, "counters": counters}
+
+    def load_state_dict(self, state: dict):
+        self.optimizer.load_state_dict(state["optimizer"])
+        for name, mask in self.masks.items():
+            mask.copy_(state["masks"][name])
+        vars(self).update(state["counters"])
+
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
@@ -397,9 +510,10 @@ if __name__ == "__main__":
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
+        run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
-    run_name = make_run_folder(args.env_id, args.exp_name, args.seed)
+    state_path = f"runs/{run_name}/state.pt"
     eval_envs = [
         ene.make_env(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
@@ -419,14 +533,18 @@ if __name__ == "__main__":
             sync_tensorboard=True,
             config=vars(args),
             name=run_name,
+            id=run_name,
+            resume="allow",
             monitor_gym=True,
             save_code=True,
         )
-    writer = SummaryWriter(f"runs/{run_name}")
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-    )
+    # a resumed run hides the points the interrupted one logged after its state (TensorBoard's purge_step)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
+    if resume is None:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
+        )
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -533,13 +651,52 @@ if __name__ == "__main__":
                 f"checkpoint for debugging: runs/{run_name}/{args.exp_name}.cleanrl_model"
             )
 
-    # TRY NOT TO MODIFY: start the game
-    start_time = time.time()
+    def stateful() -> dict:
+        """Every object the loop changes, by name (`state_of` and `load_state_` save and restore them)."""
+        return dict(actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha,
+                    alpha=alpha, actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb)
+
+    def save_state():
+        """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`."""
+        writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+        save_atomically({
+            "args": vars(args), "global_step": global_step + 1, "elapsed": time.time() - start_time, "obs": obs,
+            "objects": {name: state_of(obj) for name, obj in stateful().items()}, "rng": rng_states(device),
+            "envs": [e.rng_state() for e in [env, *eval_envs]],
+            "loop": (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions),
+        }, state_path)
+
+    # TRY NOT TO MODIFY: start the game, or continue it from the saved state
+    stop_signals = []  # SIGTERM / SIGUSR2 (SLURM, submitit: preemption, time limit): save the state at this step's end
+    for signum in (signal.SIGTERM, signal.SIGUSR2):
+        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
     progress = Progress(args.total_timesteps)
-    obs, _ = env.reset(seed=args.seed)
+    episode_return, episode_length, losses, last_eval = 0.0, 0, {}, {}
+    episode_start, episode_actions = None, []  # the episode's start (None: the seeded first reset) and its actions
+    start_step, elapsed = 0, 0.0
+    if resume is not None:
+        for name, obj in stateful().items():
+            load_state_(obj, resume["objects"][name])
+        sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions = resume["loop"]
+        losses = {name: value.to(device) for name, value in losses.items()}
+    obs = ene.replay_episode(env, args.seed, episode_start, episode_actions)  # a resume: where the saved run was
+    if resume is not None:
+        set_rng_states(resume["rng"], device)
+        for e, state in zip([env, *eval_envs], resume["envs"]):
+            e.set_rng_state(state)
+        if not np.array_equal(obs, resume["obs"].cpu().numpy()):
+            print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
+                  "the run continues, not bitwise as uninterrupted", flush=True)
+        start_step, elapsed, progress.step = resume["global_step"], resume["elapsed"], resume["global_step"]
+        if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+            for tag, value in last_eval.items():
+                writer.add_scalar(tag, value, start_step)
+        progress.eval_return = last_eval.get("eval/episodic_return")
+        print(f"resuming {state_path} at step {start_step}", flush=True)
+        del resume
+    start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
-    episode_return, episode_length, losses = 0.0, 0, {}
-    for global_step in range(args.total_timesteps):
+    for global_step in range(start_step, args.total_timesteps):
         progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
         # ALGO LOGIC: put action logic here
         if global_step < args.learning_starts:
@@ -552,6 +709,7 @@ if __name__ == "__main__":
         env_action = action.cpu().numpy()
         stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
         next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
+        episode_actions.append(env_action)
         next_obs = torch.as_tensor(next_obs, device=device)
         rb.add(obs, action, next_obs, terminated, float(true_reward), float(true_reward))
         episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
@@ -559,6 +717,7 @@ if __name__ == "__main__":
         if terminated or truncated:
             writer.add_scalar("charts/episodic_return", episode_return, global_step)
             writer.add_scalar("charts/episodic_length", episode_length, global_step)
+            episode_start, episode_actions = env.rng_state(), []
             obs, _ = env.reset()
             obs = torch.as_tensor(obs, device=device)
             episode_return, episode_length = 0.0, 0
@@ -576,8 +735,9 @@ if __name__ == "__main__":
         if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
             eval_return = float(evaluate(actor, eval_envs, device).mean())
             sps = int((global_step + 1) / (time.time() - start_time))
-            writer.add_scalar("eval/episodic_return", eval_return, global_step + 1)
-            writer.add_scalar("charts/SPS", sps, global_step + 1)
+            last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
+            for tag, value in last_eval.items():
+                writer.add_scalar(tag, value, global_step + 1)
             for opt in sparse_optimizers():
                 for name, weight in opt.named_matrices(opt.layers):
                     for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
@@ -589,6 +749,16 @@ if __name__ == "__main__":
             if args.save_model:
                 save_checkpoint()
 
+        last_step = global_step + 1 == args.total_timesteps
+        if stop_signals or (args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0):
+            save_state()
+            if stop_signals:
+                writer.close()
+                raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
+                                 f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
+
+    if not args.keep_state and os.path.exists(state_path):
+        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
     env.close()
     for eval_env in eval_envs:
         eval_env.close()

@@ -20,6 +20,7 @@ What the scripts use:
   columns of stored observations (or of `[obs, action]` rows: the noise columns are the same) with fresh noise.
 * `build_histograms(observations, path)` / `load_histograms(path)`: the `.npz` used by `--noise-type imitate`.
 * `check_env_args(...)`: the input checks, raising `ValueError` with one line that names the flag.
+* `env.rng_state()` / `env.set_rng_state(...)` and `replay_episode(...)`: the env's part of a script's `state.pt`.
 """
 
 import math
@@ -161,6 +162,29 @@ class NoisyObservation(gym.ObservationWrapper):
 
     def observation(self, observation):
         return np.concatenate([observation, self.noise_sampler.sample(self.noise_rng)]).astype(np.float32)
+
+    def rng_state(self) -> dict:
+        """Every generator of the env: the task's (initial states), the noise features' and the action space's."""
+        return {"task": self.unwrapped.np_random.get_state(), "noise": self.noise_rng.bit_generator.state,
+                "action_space": self.action_space.np_random.bit_generator.state}
+
+    def set_rng_state(self, state: dict):
+        self.unwrapped.np_random.set_state(state["task"])
+        self.noise_rng.bit_generator.state = state["noise"]
+        self.action_space.np_random.bit_generator.state = state["action_space"]
+
+
+def replay_episode(env: NoisyObservation, seed: int, episode_start: Optional[dict], actions: list) -> np.ndarray:
+    """Bring a fresh env to where a saved one was, for exact resume: its seeded first reset (`episode_start` None) or
+    a reset from the generators saved at the episode's start, then the episode's actions again (MuJoCo is
+    deterministic, so the physics, the noise stream and the last observation are those of the saved env)."""
+    obs, _ = env.reset(seed=seed)
+    if episode_start is not None:
+        env.set_rng_state(episode_start)
+        obs, _ = env.reset()
+    for action in actions:
+        obs = env.step(action)[0]
+    return obs
 
 
 def check_env_args(env_id: str, noise: float, noise_type: str = "gaussian", noise_histograms: Optional[str] = None):

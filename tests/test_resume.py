@@ -1,0 +1,187 @@
+"""Exact resume (README: "Resuming a run"): a run killed at a random moment after its first `state.pt` and started
+again with the same command ends exactly as an uninterrupted run: the same points in TensorBoard (SPS aside, whose
+values are wall-clock), no duplicate, no gap, and bitwise-identical final weights. Also: a kill during the write of
+the state, SIGTERM, and the checks on `--run-name` and on flags that changed."""
+import glob
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from test_scripts import ROOT, SPARSE_TINY, TINY
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+# TINY, shortened: feedback rounds at 500, 750 and 1000 steps, evaluations at 400, 800 and 1200, a state every 150
+# steps (the first at 150, during the random steps).
+RESUME = ["--total-timesteps", "1200", "--feedback-freq", "250", "--eval-freq", "400", "--checkpoint-freq", "150"]
+ORACLE = [
+    "--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "1200", "--learning-starts", "200",
+    "--episode-length", "100", "--eval-freq", "400", "--eval-episodes", "2", "--hidden-dim", "32", "--batch-size", "32",
+    "--log-freq", "100", "--no-cuda", "--checkpoint-freq", "150",
+]
+ARGS = {
+    "sac.py": ORACLE,
+    "anf_sac.py": ORACLE + ["--agent-topology-period", "100"],
+    "pebble.py": TINY + RESUME,
+    "r2n_pebble.py": TINY + RESUME + SPARSE_TINY,
+    "set_pebble.py": TINY + RESUME + SPARSE_TINY,
+    "static_pebble.py": TINY + RESUME,
+    "l1_pebble.py": TINY + RESUME,
+    "dropconnect_pebble.py": TINY + RESUME,
+    "surf.py": TINY + RESUME + ["--surf-tau", "0.6"],
+    "r2n_surf.py": TINY + RESUME + SPARSE_TINY + ["--surf-tau", "0.6"],
+    "rune.py": TINY + RESUME,
+    "r2n_rune.py": TINY + RESUME + SPARSE_TINY,
+}
+
+
+def start(script, cwd, run_name, *extra, wrapper=None):
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
+    command = [os.path.join(ROOT, script), *ARGS[script], "--run-name", run_name, *extra]
+    command = [sys.executable, "-c", wrapper, *command] if wrapper else [sys.executable, *command]
+    return subprocess.Popen(command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def run(script, cwd, run_name, *extra):
+    process = start(script, cwd, run_name, *extra)
+    stdout, stderr = process.communicate(timeout=600)
+    assert process.returncode == 0, stderr[-3000:]
+    return stdout, stderr
+
+
+def points(run_dir):
+    """tag -> [(step, value)] as TensorBoard shows them (the reader applies the purge of a resumed run)."""
+    events = EventAccumulator(str(run_dir), size_guidance={"scalars": 0})
+    events.Reload()
+    return {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+
+def tensors(checkpoint, prefix=""):
+    if isinstance(checkpoint, torch.Tensor):
+        yield prefix, checkpoint
+    elif isinstance(checkpoint, (dict, list)):
+        for key, value in checkpoint.items() if isinstance(checkpoint, dict) else enumerate(checkpoint):
+            yield from tensors(value, f"{prefix}/{key}")
+
+
+def assert_same_run(script, reference, resumed):
+    """The same points (SPS: the same steps) and bitwise the same checkpoint tensors."""
+    expected, actual = points(reference), points(resumed)
+    assert sorted(expected) == sorted(actual)
+    for tag in expected:
+        if tag == "charts/SPS":
+            assert [s for s, _ in actual[tag]] == [s for s, _ in expected[tag]]
+        else:
+            assert actual[tag] == expected[tag], f"{script}: {tag} differs"
+    assert [s for s, _ in actual["eval/episodic_return"]] == [400, 800, 1200]
+    name = script[:-3]
+    expected = dict(tensors(torch.load(f"{reference}/{name}.cleanrl_model", weights_only=False)))
+    actual = dict(tensors(torch.load(f"{resumed}/{name}.cleanrl_model", weights_only=False)))
+    assert sorted(expected) == sorted(actual) and expected
+    for key in expected:
+        assert torch.equal(expected[key], actual[key]), f"{script}: checkpoint tensor {key} differs"
+
+
+def wait_for(path, process):
+    while not os.path.exists(path):
+        assert process.poll() is None, process.communicate()[1][-3000:]
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize("script", list(ARGS))
+def test_killed_at_a_random_moment_resumes_exactly(script, tmp_path):
+    run(script, tmp_path, "reference")
+    process = start(script, tmp_path, "killed")
+    wait_for(tmp_path / "runs" / "killed" / "state.pt", process)
+    delay = random.uniform(0.0, 2.0)
+    time.sleep(delay)
+    assert process.poll() is None, f"the run ended within {delay:.2f} s of its first state: lengthen it"
+    process.send_signal(signal.SIGKILL)
+    process.communicate()
+    stdout, _ = run(script, tmp_path, "killed")  # the same command again
+    assert "resuming runs/killed/state.pt at step" in stdout
+    assert_same_run(script, tmp_path / "runs" / "reference", tmp_path / "runs" / "killed")
+    assert not os.path.exists(tmp_path / "runs" / "killed" / "state.pt")  # deleted at the end without --keep-state
+    assert len(glob.glob(str(tmp_path / "runs" / "killed" / "events.out.tfevents.*"))) == 2
+
+
+# torch.save, patched in the run: the second state is cut off after a few bytes by a SIGKILL of the process itself
+KILL_DURING_WRITE = """
+import os, runpy, signal, sys, torch
+save, calls = torch.save, []
+def cut_save(obj, f, *args, **kwargs):
+    if getattr(f, "name", "").endswith("state.pt.tmp"):
+        calls.append(f.name)
+        if len(calls) == 2:
+            f.write(b"PK\\x03\\x04 half a state")
+            f.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+    return save(obj, f, *args, **kwargs)
+torch.save = cut_save
+sys.argv = sys.argv[1:]
+sys.path.insert(0, os.path.dirname(sys.argv[0]))
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def test_a_kill_during_the_write_keeps_the_previous_state(tmp_path):
+    run("pebble.py", tmp_path, "reference")
+    process = start("pebble.py", tmp_path, "cut", wrapper=KILL_DURING_WRITE)
+    process.communicate(timeout=600)
+    assert process.returncode == -signal.SIGKILL
+    folder = tmp_path / "runs" / "cut"
+    assert (folder / "state.pt.tmp").read_bytes().startswith(b"PK\x03\x04 half")
+    assert torch.load(folder / "state.pt", weights_only=False)["global_step"] == 150  # the first state, intact
+    stdout, _ = run("pebble.py", tmp_path, "cut")
+    assert "resuming runs/cut/state.pt at step 150" in stdout
+    assert_same_run("pebble.py", tmp_path / "runs" / "reference", folder)
+
+
+def test_sigterm_saves_the_state_and_exits_then_resumes_exactly(tmp_path):
+    run("r2n_pebble.py", tmp_path, "reference", "--keep-state")
+    assert torch.load(tmp_path / "runs" / "reference" / "state.pt", weights_only=False)["global_step"] == 1200
+    process = start("r2n_pebble.py", tmp_path, "stopped")
+    wait_for(tmp_path / "runs" / "stopped" / "state.pt", process)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=600)
+    assert process.returncode == 1
+    assert "stopped by SIGTERM after step" in stderr and "--run-name stopped to resume" in stderr
+    step = int(stderr.split("after step ")[1].split(";")[0])
+    assert torch.load(tmp_path / "runs" / "stopped" / "state.pt", weights_only=False)["global_step"] == step
+    stdout, _ = run("r2n_pebble.py", tmp_path, "stopped", "--threads", "1", "--log-freq", "100")  # may change
+    assert f"resuming runs/stopped/state.pt at step {step}" in stdout
+    assert_same_run("r2n_pebble.py", tmp_path / "runs" / "reference", tmp_path / "runs" / "stopped")
+
+
+def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
+    process = start("sac.py", tmp_path, "a")
+    wait_for(tmp_path / "runs" / "a" / "state.pt", process)
+    process.send_signal(signal.SIGKILL)
+    process.communicate()
+    before = sorted(os.listdir(tmp_path / "runs" / "a"))
+    cases = [
+        (["--seed", "2", "--noise", "0.5"], "a", "differs in --noise 0.9 (now 0.5), --seed 1 (now 2)"),
+        ([], "a/b", "--run-name must be a folder name"),
+        (["--checkpoint-freq", "0"], "c", "--checkpoint-freq must be >= 1"),
+    ]
+    for extra, name, message in cases:
+        process = start("sac.py", tmp_path, name, *extra)
+        _, stderr = process.communicate(timeout=120)
+        assert process.returncode == 1 and message in stderr, stderr
+        assert len(stderr.strip().splitlines()) == 1, stderr
+    assert sorted(os.listdir(tmp_path / "runs" / "a")) == before
+    (tmp_path / "runs" / "done").mkdir()  # a folder without a state: a finished run, never overwritten
+    process = start("sac.py", tmp_path, "done")
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1 and "holds no state.pt to resume" in stderr
+    (tmp_path / "runs" / "a" / "state.pt").write_bytes(b"not a state")
+    process = start("sac.py", tmp_path, "a")
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1 and "cannot read runs/a/state.pt" in stderr
