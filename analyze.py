@@ -40,6 +40,7 @@ import sys
 import warnings
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
+from itertools import groupby
 from typing import Literal
 
 import numpy as np
@@ -73,6 +74,7 @@ class Args:
 RUN_SPECIFIC_KEYS = frozenset({
     "seed", "exp_name", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "threads",
     "cuda", "torch_deterministic", "log_freq", "relabel_batch_size", "diagnostic_transitions", "diagnostic_pairs",
+    "run_name", "checkpoint_freq", "keep_state",
 })
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
@@ -169,7 +171,7 @@ def parse_hparams(text: str) -> dict:
 
 
 def find_event_files(log_dirs) -> list:
-    """Every TensorBoard event file under `log_dirs` (recursively), sorted: one per run."""
+    """Every TensorBoard event file under `log_dirs` (recursively), sorted (by folder, then by start time)."""
     found = set()
     for root in log_dirs:
         for path in glob.glob(os.path.join(glob.escape(root), "**", "events.out.tfevents.*"), recursive=True):
@@ -177,11 +179,15 @@ def find_event_files(log_dirs) -> list:
     return sorted(found)
 
 
-def read_run(path: str) -> Run:
-    """All scalar points and the hyperparameter table of one event file (raises on unreadable ones)."""
+def read_run(path: str, whole_folder: bool = False) -> Run:
+    """All scalar points and the hyperparameter table of one event file, or with `whole_folder` of every event file in
+    its folder read in order, as TensorBoard does (a resumed run: its purge hides the points logged after the saved
+    state). Raises on unreadable files."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.util import tb_logging
 
-    accumulator = EventAccumulator(path, size_guidance={"scalars": 0, "tensors": 0})
+    tb_logging.get_logger().setLevel("ERROR")  # not its warning on the purge of a resumed run: that is expected
+    accumulator = EventAccumulator(os.path.dirname(path) if whole_folder else path, size_guidance={"scalars": 0, "tensors": 0})
     accumulator.Reload()
     tags = accumulator.Tags()
     run = Run(path)
@@ -197,23 +203,35 @@ def read_run(path: str) -> Run:
     return run
 
 
+def read_folder(paths: list) -> list:
+    """The runs of the event files of one folder. A run resumed from its `state.pt` (README: "Resuming a run") wrote
+    one file per start, and only the first has the hyperparameter table: those files are read together as one run.
+    Files that each have the table are runs of their own that shared the folder."""
+    runs = []
+    for path in paths:
+        try:
+            runs.append(read_run(path))
+        except Exception as e:  # a truncated or corrupt event file
+            runs.append(Run(path))
+            runs[-1].skip(f"unreadable: {type(e).__name__}: {e}")
+    if len(runs) > 1 and runs[0].hparams and all(run.status == "used" and not run.hparams for run in runs[1:]):
+        run = read_run(paths[0], whole_folder=True)
+        run.note = f"resumed {len(paths) - 1} time(s): {len(paths)} event files read as one run"
+        return [run]
+    for run in runs:
+        if len(runs) > 1:
+            run.note = f"shares its folder with {len(runs) - 1} other event file(s) (the folder's checkpoint is one of theirs)"
+    return runs
+
+
 def load_runs(log_dirs, include_unfinished: bool = False) -> list:
     """Every run found, with `status` "used" or "skipped" and the reason: unreadable, crashed, unfinished."""
     runs = []
-    files = find_event_files(log_dirs)
-    per_folder = Counter(os.path.dirname(path) for path in files)
-    for path in files:
-        try:
-            run = read_run(path)
-        except Exception as e:  # a truncated or corrupt event file
-            run = Run(path)
-            run.skip(f"unreadable: {type(e).__name__}: {e}")
-            runs.append(run)
+    for _, paths in groupby(find_event_files(log_dirs), key=os.path.dirname):
+        runs += read_folder(list(paths))
+    for run in runs:
+        if run.status == "skipped":
             continue
-        runs.append(run)
-        if per_folder[run.folder] > 1:
-            run.note = (f"shares its folder with {per_folder[run.folder] - 1} other event file(s) (the folder's "
-                        f"checkpoint is one of theirs)")
         missing = [k for k in ("env_id", "exp_name", "seed") if k not in run.hparams]
         steps = run.eval_steps
         total = run.hparams.get("total_timesteps")

@@ -22,13 +22,13 @@ Choices where the issue is silent:
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
   GPU (SLURM sets `CUDA_VISIBLE_DEVICES`), with `--slurm-mem-gb` per run. It returns after submission unless
-  `--slurm-wait`. A run killed at the time limit has no marker and is resubmitted by the next call (runs restart
-  from scratch: the scripts do not resume).
+  `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself (`--slurm-max-requeues`);
+  a run without a `.done` marker is resubmitted by the next call and resumes from its `state.pt` if it has one.
 - Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
   in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
-- Run folders: the scripts create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` atomically and take the next
-  second when a run of the same env, method and seed (another noise or budget) got there first, so runs of a sweep
-  can start together.
+- Run folders: every run gets `--run-name {run_id}`, so its folder is `runs/{run_id}` and re-running the sweep
+  resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
+  stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
 import glob
 import os
@@ -187,6 +187,8 @@ class Args:
     """slurm: submitit executor; `local` and `debug` run the same job functions on this machine (for tests)"""
     slurm_wait: bool = False
     """slurm: wait for the jobs and report every failed run (default: return after submission)"""
+    slurm_max_requeues: int = 100
+    """slurm: times a job may be requeued after its time limit (each resumes its runs from their `state.pt`)"""
 
 
 @dataclass(frozen=True)
@@ -257,7 +259,7 @@ def expand(args: Args) -> list:
                     command = (args.python, script, "--exp-name", method, "--env-id", env, "--noise", f"{noise:g}")
                     if budget_m is not None:
                         command += ("--max-feedback", str(budget_m))
-                    command += ("--seed", str(seed), "--threads", str(args.threads)) + tuple(flags)
+                    command += ("--seed", str(seed), "--threads", str(args.threads), "--run-name", run_id) + tuple(flags)
                     if part is not None:
                         command += part.flags + (() if budget_m is None else part.feedback_flags)
                     runs.setdefault(run_id, Run(run_id, method, env, noise, budget_m, seed, command + extra))
@@ -294,20 +296,28 @@ def git_commit() -> str:
 # ---------------------------------------------------------------- running one run (shared by both back-ends)
 
 
+RESUMED = "\n# resumed from its state.pt\n"
+
+
 def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
-    """Start one run: clear its markers, open its log (header: command, GPU, start time), return the process."""
+    """Start one run, or resume it when its folder `runs/{run_id}` holds a `state.pt`: clear its markers, open its log
+    (header: command, GPU, start time; appended to on a resume), return the process."""
     for kind in ("done", "failed"):
         if os.path.exists(spec["log"][:-4] + "." + kind):
             os.remove(spec["log"][:-4] + "." + kind)
-    if spec["results"]:  # a fresh scratch folder: the run's only `runs/*` is this run's
+    folder = os.path.join(spec["cwd"], "runs", spec["run_id"])
+    resume = os.path.exists(os.path.join(folder, "state.pt"))
+    if spec["results"] and not resume:  # a fresh scratch folder: the run's only `runs/*` is this run's
         shutil.rmtree(spec["cwd"], ignore_errors=True)
         os.makedirs(spec["cwd"])
+    elif not resume and os.path.exists(folder):  # a run that stopped before its first state, or a rerun: kept aside
+        os.replace(folder, f"{folder}.old-{time.strftime('%Y%m%d-%H%M%S')}")
     env = dict(os.environ, OMP_NUM_THREADS=str(spec["threads"]), MKL_NUM_THREADS=str(spec["threads"]),
                PYTHONUNBUFFERED="1")
     if gpu is not None:
         env["CUDA_VISIBLE_DEVICES"] = str(gpu)
-    with open(spec["log"], "w") as log:
-        log.write(f"# run {spec['run_id']}\n# command: {shlex.join(spec['command'])}\n"
+    with open(spec["log"], "a" if resume else "w") as log:
+        log.write(f"{RESUMED if resume else ''}# run {spec['run_id']}\n# command: {shlex.join(spec['command'])}\n"
                   f"# cwd: {spec['cwd']}\n# CUDA_VISIBLE_DEVICES={env.get('CUDA_VISIBLE_DEVICES', '(unset)')} "
                   f"OMP_NUM_THREADS={spec['threads']}\n# git commit {spec['commit']}\n"
                   f"# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
@@ -328,7 +338,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
         os.makedirs(spec["results"])
-        for events in glob.glob(os.path.join(spec["cwd"], "runs", "*", "events.out.tfevents.*")):
+        for events in glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*")):
             shutil.copy2(events, spec["results"])
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
         with open(os.path.join(spec["results"], "done"), "w") as f:
@@ -337,15 +347,35 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
         f.write(summary)
 
 
-def run_group(specs: list) -> list:
-    """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)]."""
-    processes = [(spec, launch(spec)) for spec in specs]
-    results = []
-    for spec, process in processes:
-        returncode = process.wait()
-        finish_run(spec, returncode, time.time() - process.started)
-        results.append((spec["run_id"], returncode, spec["log"]))
-    return results
+class RunGroup:
+    """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)].
+    Checkpointable: at the time limit submitit calls `checkpoint`, which has the runs save their `state.pt` (SIGUSR2)
+    and requeues the task, which then resumes them (preempted jobs that SLURM requeues resume the same way)."""
+
+    def __call__(self, specs: list) -> list:
+        self.processes = [(spec, launch(spec)) for spec in specs]
+        results = []
+        for spec, process in self.processes:
+            returncode = process.wait()
+            finish_run(spec, returncode, time.time() - process.started)
+            results.append((spec["run_id"], returncode, spec["log"]))
+        return results
+
+    def checkpoint(self, specs: list):
+        import submitit
+
+        for _, process in getattr(self, "processes", []):
+            if process.poll() is None:
+                process.send_signal(signal.SIGUSR2)
+        for spec, process in getattr(self, "processes", []):
+            try:  # the run ends its step, saves its state and exits; not `process.wait()`: this signal handler may
+                # have interrupted `__call__` inside it, holding its lock. WNOWAIT leaves the exit status to that wait.
+                code = os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOWAIT).si_status
+            except ChildProcessError:  # already reaped
+                code = process.returncode
+            with open(spec["log"], "a") as log:
+                log.write(f"\n# exit code {code}: stopped at the job's time limit, requeued to resume\n")
+        return submitit.helpers.DelayedSubmission(RunGroup(), specs)  # a fresh one: processes do not pickle
 
 
 def spec_of(run: Run, args: Args) -> dict:
@@ -423,7 +453,8 @@ def make_executor(args: Args):
         extra[key] = value
     if args.slurm_account:
         extra["account"] = args.slurm_account
-    executor = submitit.AutoExecutor(folder=args.slurm_folder, cluster=args.slurm_cluster)
+    executor = submitit.AutoExecutor(folder=args.slurm_folder, cluster=args.slurm_cluster,
+                                     slurm_max_num_timeout=args.slurm_max_requeues)
     k = args.runs_per_gpu
     executor.update_parameters(
         name="r2n", timeout_min=args.slurm_time, gpus_per_node=args.slurm_gpus, mem_gb=args.slurm_mem_gb * k,
@@ -448,7 +479,7 @@ def run_slurm(runs: list, args: Args) -> Optional[list]:
     specs = [spec_of(run, args) for run in runs]
     chunks = [specs[i:i + k] for i in range(0, len(specs), k)]
     executor = make_executor(args)
-    jobs = executor.map_array(run_group, chunks)
+    jobs = executor.map_array(RunGroup(), chunks)
     print(f"submitted {len(runs)} runs as {len(jobs)} array tasks ({k} per GPU job): job ids "
           f"{jobs[0].job_id} .. {jobs[-1].job_id}; submitit files in {args.slurm_folder}/", flush=True)
     for job, chunk in zip(jobs, chunks):

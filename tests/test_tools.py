@@ -2,9 +2,11 @@
 preset grids, the local back-end (parallel fake runs, GPU slots, resume, failures, one real tiny pebble.py run) and
 the SLURM back-end through submitit (local executor; a fake `sbatch` for the job script)."""
 import csv
+import glob
 import importlib.util
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import time
@@ -375,7 +377,8 @@ def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
     assert benchmark.main(args) == 0
     views = [child_view(r.run_id) for r in runs]
     assert [v["cuda"] for v in views] == ["0", "1", "0", "1"]  # round-robin over 2 GPUs x 2 slots
-    assert all(v["omp"] == "1" and v["argv"][-2:] == ["--threads", "1"] for v in views)
+    assert all(v["omp"] == "1" and v["argv"][-4:] == ["--threads", "1", "--run-name", r.run_id]
+               for v, r in zip(views, runs))
     assert max(v["start"] for v in views) < min(v["end"] for v in views)  # all four ran at the same time
     assert all(os.path.exists(f"logs/{r.run_id}.done") for r in runs)
     log = open(f"logs/{runs[0].run_id}.log").read()
@@ -499,3 +502,54 @@ def test_oracles_share_the_axes_of_the_pbrl_methods_of_their_noise():
     assert [setting for setting, _ in panels] == [(0.5, None), (0.9, 400), (0.9, 1000), (0.95, 400)]
     assert [[g.key[3] for g in groups] for _, groups in panels] == [
         ["sac"], ["sac", "pebble", "r2n_pebble"], ["sac", "pebble"], ["sac", "r2n_pebble"]]
+
+
+ORACLE_TINY_RESUMABLE = (  # test_resume's ORACLE: evaluations at 400, 800, 1200, a state every 150 steps
+    "--total-timesteps 1200 --learning-starts 200 --episode-length 100 --eval-freq 400 --eval-episodes 2 "
+    "--hidden-dim 32 --batch-size 32 --log-freq 100 --no-cuda --checkpoint-freq 150"
+)
+
+
+def interrupt_job_of(run_id, state):
+    """What SLURM does at the time limit: SIGUSR2 to the job (the submitit process that launched the run)."""
+    while not os.path.exists(state):
+        time.sleep(0.05)
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            cmdline = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+            parent = int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[1])
+        except OSError:
+            continue
+        if run_id.encode() in cmdline and b"--run-name" in cmdline:
+            os.kill(parent, signal.SIGUSR2)
+            return
+    raise AssertionError(f"no process of {run_id}")
+
+
+@needs_submitit
+@needs_analysis
+def test_slurm_job_at_its_time_limit_requeues_and_resumes_exactly(tmp_path, monkeypatch, capsys):
+    """A real sac.py run in a submitit (local executor) job gets the time-limit signal after its first state: the job
+    has it save its state, requeues itself, and the run resumes; its points equal those of an uninterrupted run."""
+    import threading
+
+    monkeypatch.chdir(tmp_path)
+    run_id = "sac__cartpole-swingup__noise0.9__budgetnone__seed3"
+    common = dict(methods=("sac",), env_ids=("cartpole-swingup",), noises=(0.9,), seeds=(3,), extra=ORACLE_TINY_RESUMABLE)
+    assert benchmark.main(benchmark.Args(**common, log_dir="logs-local", results_dir="uninterrupted")) == 0
+    state = f"logs-slurm/scratch/{run_id}/runs/{run_id}/state.pt"
+    interrupter = threading.Thread(target=interrupt_job_of, args=(run_id, state), daemon=True)
+    interrupter.start()
+    args = benchmark.Args(**common, log_dir="logs-slurm", results_dir="requeued", backend="slurm", slurm_cluster="local",
+                          slurm_wait=True, slurm_time=10, slurm_folder="submitit")
+    assert benchmark.main(args) == 0, open(f"logs-slurm/{run_id}.log").read()
+    interrupter.join(1)
+    log = open(f"logs-slurm/{run_id}.log").read()
+    assert "stopped at the job's time limit, requeued to resume" in log and "# resumed from its state.pt" in log
+    assert "resuming runs/" in log and "# exit code 0" in log
+    assert len(glob.glob(f"requeued/{run_id}/events.out.tfevents.*")) == 2
+    (reference,), (resumed,) = [analyze.load_runs([f"{folder}/{run_id}"]) for folder in ("uninterrupted", "requeued")]
+    assert resumed.status == "used" and "resumed 1 time(s)" in resumed.note
+    for tag, (steps, values) in reference.scalars.items():
+        assert np.array_equal(resumed.scalars[tag][0], steps), tag
+        assert tag == "charts/SPS" or np.array_equal(resumed.scalars[tag][1], values), tag
