@@ -415,3 +415,29 @@ def test_quadruped_actions_are_rescaled():
     np.testing.assert_allclose(captured[0], native.low, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(captured[1], native.high, rtol=1e-6, atol=1e-6)
     env.close()
+
+
+def test_replay_episode_brings_a_fresh_env_where_the_saved_one_was():
+    """The env's part of exact resume: generators saved at an episode's start plus its actions rebuild the env."""
+    env = ene.make_env("cartpole-swingup", 3, 0.9, episode_length=20)
+    env.reset(seed=3)
+    for _ in range(20):  # a first episode, so that the saved start is not the seeded one
+        env.step(env.action_space.sample())
+    episode_start, actions = env.rng_state(), []
+    obs, _ = env.reset()
+    for _ in range(7):
+        actions.append(env.action_space.sample())
+        obs = env.step(actions[-1])[0]
+    now = env.rng_state()
+    fresh = ene.make_env("cartpole-swingup", 3, 0.9, episode_length=20)
+    assert np.array_equal(ene.replay_episode(fresh, 3, episode_start, actions), obs)
+    fresh.set_rng_state(now)
+    for _ in range(30):  # the rest of the episode and the next one, actions from the restored action space
+        action, fresh_action = env.action_space.sample(), fresh.action_space.sample()
+        assert np.array_equal(action, fresh_action)
+        step, fresh_step = env.step(action), fresh.step(fresh_action)
+        assert np.array_equal(step[0], fresh_step[0]) and step[1:4] == fresh_step[1:4]
+        if step[3]:
+            assert np.array_equal(env.reset()[0], fresh.reset()[0])
+    other = ene.make_env("cartpole-swingup", 4, 0.9, episode_length=20)  # a check that can fail: another seed
+    assert not np.array_equal(ene.replay_episode(other, 4, None, actions), obs)
