@@ -876,10 +876,12 @@ if __name__ == "__main__":
 
     def stateful() -> dict:
         """Every object the loop changes, by name (`state_of` and `load_state_` save and restore them)."""
-        return dict(actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha,
-                    alpha=alpha, actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
-                    reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes, prefs=prefs,
-                    entropy_stats=entropy_stats)
+        return dict(
+            actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha, alpha=alpha,
+            actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
+            reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes, prefs=prefs,
+            entropy_stats=entropy_stats,
+        )
 
     def save_state():
         """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`."""
@@ -888,8 +890,8 @@ if __name__ == "__main__":
             "args": vars(args), "global_step": global_step + 1, "elapsed": time.time() - start_time, "obs": obs,
             "objects": {name: state_of(obj) for name, obj in stateful().items()}, "rng": rng_states(device),
             "envs": [e.rng_state() for e in [env, *eval_envs]],
-            "loop": (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions,
-                     total_feedback, labeled_feedback, recent_returns),
+            "loop": (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions),
+            "feedback": (total_feedback, labeled_feedback, recent_returns),
         }, state_path)
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
@@ -903,8 +905,8 @@ if __name__ == "__main__":
     if resume is not None:
         for name, obj in stateful().items():
             load_state_(obj, resume["objects"][name])
-        (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions,
-         total_feedback, labeled_feedback, recent_returns) = resume["loop"]
+        sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions = resume["loop"]
+        total_feedback, labeled_feedback, recent_returns = resume["feedback"]
         losses = {name: value.to(device) for name, value in losses.items()}
     obs = ene.replay_episode(env, args.seed, episode_start, episode_actions)  # a resume: where the saved run was
     if resume is not None:

@@ -522,8 +522,10 @@ if __name__ == "__main__":
 
     def stateful() -> dict:
         """Every object the loop changes, by name (`state_of` and `load_state_` save and restore them)."""
-        return dict(actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha,
-                    alpha=alpha, actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb)
+        return dict(
+            actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha, alpha=alpha,
+            actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
+        )
 
     def save_state():
         """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`."""

@@ -334,8 +334,9 @@ def test_sac_is_pebble_without_preference_learning():
     sac_source, pebble_source = _read("sac.py"), _read("pebble.py")
     assert sac_source.splitlines()[0] == HEADER
     changes = _changes(sac_source, pebble_source)
-    # 373 lines of preference learning, plus 48 of its diagnostics (reward_diagnostics, optimizer_steps, their flags)
-    assert 0 < len(changes) <= 430, f"diff sac.py pebble.py: {len(changes)} changed lines > 430"
+    # 373 lines of preference learning, plus 48 of its diagnostics (reward_diagnostics, optimizer_steps, their flags),
+    # plus 11 of its part of the resume state (PreferenceBuffer's state methods, the PbRL objects and counters)
+    assert 0 < len(changes) <= 441, f"diff sac.py pebble.py: {len(changes)} changed lines > 441"
     # outside the docstrings sac.py is pebble.py with lines deleted and a handful reworded
     code_changes = _changes(_without_docstring(sac_source), _without_docstring(pebble_source))
     sac_only = [line for line in code_changes if line.startswith("-")]

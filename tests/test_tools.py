@@ -263,11 +263,12 @@ def test_presets_expand_to_the_paper_grids():
     assert first.run_id == "pebble__cartpole-swingup__noise0.9__budget400__seed1"
     assert list(first.command[1:]) == [os.path.join(ROOT, "pebble.py"), "--exp-name", "pebble", "--env-id",
                                        "cartpole-swingup", "--noise", "0.9", "--max-feedback", "400", "--seed", "1",
-                                       "--threads", "1"]
+                                       "--threads", "1", "--run-name", first.run_id]
     last = main[-1]
     assert last.run_id == "r2n_rune__humanoid-stand__noise0.7__budget10000__seed14"
     assert shlex.join(last.command[1:]).endswith(
-        "r2n_rune.py --exp-name r2n_rune --env-id humanoid-stand --noise 0.7 --max-feedback 10000 --seed 14 --threads 1")
+        "r2n_rune.py --exp-name r2n_rune --env-id humanoid-stand --noise 0.7 --max-feedback 10000 --seed 14 --threads 1 "
+        "--run-name r2n_rune__humanoid-stand__noise0.7__budget10000__seed14")
 
     sparse = grid(preset="sparse-baselines")
     assert len(sparse) == 5 * 5 * 5
