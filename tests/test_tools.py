@@ -554,3 +554,33 @@ def test_slurm_job_at_its_time_limit_requeues_and_resumes_exactly(tmp_path, monk
     for tag, (steps, values) in reference.scalars.items():
         assert np.array_equal(resumed.scalars[tag][0], steps), tag
         assert tag == "charts/SPS" or np.array_equal(resumed.scalars[tag][1], values), tag
+
+
+@needs_analysis
+def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch):
+    """Ctrl-C on the launcher: its runs get SIGTERM, save their state and stop; the same command again resumes them,
+    and the sweep ends with the points of an uninterrupted one."""
+    monkeypatch.chdir(tmp_path)
+    run_id = "sac__cartpole-swingup__noise0.9__budgetnone__seed4"
+    flags = ["--methods", "sac", "--env-ids", "cartpole-swingup", "--noises", "0.9", "--seeds", "4",
+             f"--extra={ORACLE_TINY_RESUMABLE}"]
+    launcher = [sys.executable, os.path.join(ROOT, "benchmark.py"), *flags]
+    subprocess.run(launcher + ["--log-dir", "logs-a", "--results-dir", "uninterrupted"], check=True, timeout=300,
+                   capture_output=True)
+    sweep = launcher + ["--log-dir", "logs-b", "--results-dir", "resumed"]
+    process = subprocess.Popen(sweep, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    while not os.path.exists(f"logs-b/scratch/{run_id}/runs/{run_id}/state.pt"):
+        assert process.poll() is None, process.communicate()[0]
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    output = process.communicate(timeout=300)[0]
+    assert "interrupted: running runs terminated" in output and os.path.exists(f"logs-b/{run_id}.failed")
+    assert "stopped by SIGTERM" in open(f"logs-b/{run_id}.log").read()
+    result = subprocess.run(sweep, timeout=300, capture_output=True, text=True)
+    assert result.returncode == 0 and "1 runs finished" in result.stdout, result.stdout + result.stderr
+    assert "# resumed from its state.pt" in open(f"logs-b/{run_id}.log").read()
+    (reference,), (resumed,) = [analyze.load_runs([f"{folder}/{run_id}"]) for folder in ("uninterrupted", "resumed")]
+    assert resumed.status == "used" and "resumed 1 time(s)" in resumed.note
+    for tag, (steps, values) in reference.scalars.items():
+        assert np.array_equal(resumed.scalars[tag][0], steps), tag
+        assert tag == "charts/SPS" or np.array_equal(resumed.scalars[tag][1], values), tag
