@@ -795,10 +795,11 @@ if __name__ == "__main__":
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
     state_path = f"runs/{run_name}/state.pt"
+    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
     eval_envs = [
         ene.make_env(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
-            args.episode_length, f"videos/{run_name}" if args.capture_video and i == 0 else None,
+            args.episode_length, video_folder if args.capture_video and i == 0 else None,
         )
         for i in range(args.eval_episodes)
     ]
