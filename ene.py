@@ -21,6 +21,7 @@ What the scripts use:
 * `build_histograms(observations, path)` / `load_histograms(path)`: the `.npz` used by `--noise-type imitate`.
 * `check_env_args(...)`: the input checks, raising `ValueError` with one line that names the flag.
 * `env.rng_state()` / `env.set_rng_state(...)` and `replay_episode(...)`: the env's part of a script's `state.pt`.
+* `env.physics_state()` and `render_states(env_id, states)`: the stored physics of queried segments, drawn again.
 """
 
 import math
@@ -172,6 +173,25 @@ class NoisyObservation(gym.ObservationWrapper):
         self.unwrapped.np_random.set_state(state["task"])
         self.noise_rng.bit_generator.state = state["noise"]
         self.action_space.np_random.bit_generator.state = state["action_space"]
+
+    def physics_state(self) -> np.ndarray:
+        """The MuJoCo state of the current step (qpos, qvel, act): what `render_states` needs to draw it again."""
+        return self.unwrapped._env.physics.get_state().copy()
+
+
+def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int = 320) -> np.ndarray:
+    """Frames (T, height, width, 3) uint8 of the physics `states` (T, D) of task `env_id`, from camera 0. Needs a
+    renderer: on a machine without a display set `MUJOCO_GL=egl` (or `osmesa`) before the first import of dm_control."""
+    from dm_control import suite
+
+    domain, task = env_id.split("-", 1)
+    physics = suite.load(domain, task).physics
+    frames = []
+    for state in states:
+        with physics.reset_context():  # sets the state and recomputes positions for drawing
+            physics.set_state(state)
+        frames.append(physics.render(height, width, camera_id=0))
+    return np.stack(frames)
 
 
 def replay_episode(env: NoisyObservation, seed: int, episode_start: Optional[dict], actions: list) -> np.ndarray:

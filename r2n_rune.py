@@ -43,6 +43,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # SAC optimiser steps (the reset critic gets a fresh mask and count). Masked weights are exactly 0; their gradients
 # and Adam moments are kept at 0; grown weights start at 0 with zero moments. Target critics are dense Polyak copies.
 import importlib.util
+import json
 import math
 import os
 import random
@@ -175,6 +176,10 @@ class Args:
     """stored transitions (at fixed relative positions in the buffer) behind `pbrl/reward_true_corr`"""
     diagnostic_pairs: int = 256
     """fresh segment pairs per round behind `pbrl/heldout_accuracy` (oracle labels, never trained on nor counted)"""
+    teacher: Literal["simulated", "external"] = "simulated"
+    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (README: labelling)"""
+    preferences: Optional[str] = None
+    """an earlier run's `preferences.npz`: its labels seed the reward model's dataset (they count in the budget)"""
     teacher_beta: float = -1.0
     """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
     teacher_gamma: float = 1.0
@@ -355,7 +360,7 @@ def state_of(obj):
         return obj.detach()
     if hasattr(obj, "state_dict"):
         return obj.state_dict()
-    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, int, float))}
+    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
 
 
 @torch.no_grad()
@@ -462,27 +467,34 @@ class EpisodeStore:
         self.slots = max_episodes + 1  # one slot is being written while the others hold complete episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
+        self.physics = np.zeros((self.slots, episode_length, 0))  # host-side MuJoCo states, to render queries again
         self.max_episodes, self.episode_length, self.obs_dim = max_episodes, episode_length, obs_dim
         self.n_complete, self.t = 0, 0
 
-    def add(self, obs, action, true_reward: float):
+    def add(self, obs, action, true_reward: float, physics: Optional[np.ndarray] = None):
         """Append one step; an episode is complete after `episode_length` steps (DMC episodes never end early)."""
         slot = self.n_complete % self.slots
         self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
         self.true_rewards[slot, self.t] = true_reward
+        if physics is not None:
+            if self.physics.shape[2] != len(physics):
+                self.physics = np.zeros((self.slots, self.episode_length, len(physics)))
+            self.physics[slot, self.t] = physics
         self.t += 1
         if self.t == self.episode_length:
             self.n_complete, self.t = self.n_complete + 1, 0
 
-    def sample_segments(self, n_pairs: int, length: int):
-        """Pairs of segments: episode and start drawn independently per side. Returns (n, 2, H, D) and (n, 2, H)."""
+    def sample_segments(self, n_pairs: int, length: int, with_physics: bool = False):
+        """Pairs of segments: episode and start drawn independently per side. Returns (n, 2, H, D) and (n, 2, H), and
+        with `with_physics` their physics states (n, 2, H, P) in numpy."""
         device = self.inputs.device
         n_available = min(self.n_complete, self.max_episodes)
         episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
         starts = torch.randint(0, self.episode_length - length + 1, (n_pairs, 2), device=device)
         steps = starts.unsqueeze(-1) + torch.arange(length, device=device)
         episodes = episodes.unsqueeze(-1)
-        return self.inputs[episodes, steps], self.true_rewards[episodes, steps]
+        segments = self.inputs[episodes, steps], self.true_rewards[episodes, steps]
+        return (*segments, self.physics[episodes.cpu().numpy(), steps.cpu().numpy()]) if with_physics else segments
 
 
 class PreferenceBuffer:
@@ -507,6 +519,84 @@ class PreferenceBuffer:
     def load_state_dict(self, state: dict):
         self.size = 0
         self.add(state["segments"].to(self.labels.device), state["labels"].to(self.labels.device))
+
+
+# TRY NOT TO MODIFY: the queries and labels of a run (`preferences.npz`) and the external teacher (README: labelling)
+def write_npz(path: str, **arrays):
+    """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(f"{path}.tmp", "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(f"{path}.tmp", path)
+
+
+class QueryLog:
+    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
+    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step."""
+
+    def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
+        self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
+        self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
+        self.physics = np.zeros((0, 2, segment_steps, physics_dim))
+        self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+    @property
+    def next_round(self) -> int:
+        return int(self.rounds.max(initial=-1)) + 1
+
+    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int):
+        new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
+                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
+        for name, value in new.items():
+            setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
+
+    def save(self, path: str, env_id: str, obs_dim: int):
+        write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
+                  true_rewards=self.true_rewards, physics=self.physics, labels=self.labels, rounds=self.rounds,
+                  steps=self.steps)
+
+
+def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
+    """The arrays of an earlier run's `preferences.npz` (`--preferences`); a ValueError with one line if it does not
+    fit this run."""
+    if not os.path.isfile(path):
+        raise ValueError(f"--preferences: no such file: {path}")
+    try:
+        with np.load(path) as data:
+            arrays = {name: data[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
+    except Exception as e:  # not an npz, a missing array
+        raise ValueError(f"--preferences: {path} is not a preferences.npz ({type(e).__name__}: {e})") from None
+    shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
+    if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
+        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
+                         f"features; this run needs {env_id}, {segment_steps} x {input_dim}")
+    if len(arrays["labels"]) > budget:
+        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than --max-feedback {budget}")
+    return arrays
+
+
+def ask_external_teacher(folder: str, round_index: int, queries: dict, poll_seconds: float = 1.0) -> tuple:
+    """`--teacher external`: write the round's `queries` (numpy arrays) to `{folder}/queries/{round}.npz`, then wait
+    for `{folder}/labels/{round}.json`: a JSON list with, per query, 1 (the second segment is preferred), 0 (the
+    first), 0.5 (equal) or "skip". A malformed file gets one line and the wait goes on. Returns (labels with NaN
+    where skipped, seconds spent waiting)."""
+    write_npz(f"{folder}/queries/{round_index}.npz", **queries)
+    path, n, started, seen = f"{folder}/labels/{round_index}.json", len(queries["obs"]), time.monotonic(), None
+    print(f"waiting for labels: {path}, one per query of {folder}/queries/{round_index}.npz (by hand: python "
+          f"label_app.py {folder})", flush=True)
+    while True:
+        stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
+        if stamp is not None and stamp != seen:
+            seen = stamp
+            try:
+                with open(path) as f:
+                    answers = json.load(f)
+                if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+                    raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
+                return np.array([np.nan if a == "skip" else a for a in answers], np.float32), time.monotonic() - started
+            except ValueError as e:  # a JSONDecodeError too
+                print(f"labels: {path}: {e}; waiting for a corrected file", flush=True)
+        time.sleep(poll_seconds)
 
 
 # ALGO LOGIC: initialize agent here:
@@ -678,11 +768,12 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
 
 @torch.no_grad()
 def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
-                   pool_multiplier: int, noise=None):
-    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement / entropy)."""
+                   pool_multiplier: int, noise=None, with_physics: bool = False):
+    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement / entropy); with
+    `with_physics`, also their physics states."""
     if sampling == "uniform":
-        return store.sample_segments(n_queries, segment_size)
-    segments, true_rewards = store.sample_segments(n_queries * pool_multiplier, segment_size)
+        return store.sample_segments(n_queries, segment_size, with_physics)
+    segments, true_rewards, *physics = store.sample_segments(n_queries * pool_multiplier, segment_size, with_physics)
     inputs = read_noisy(segments, noise)
     returns = model(inputs.flatten(0, 2)).view(model.ensemble_size, *segments.shape[:3]).sum(-1)
     p = returns.softmax(-1)[..., 1]  # each member's P[segment 1 preferred], (E, pool)
@@ -691,7 +782,7 @@ def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, s
     else:  # entropy: the mean of the members' binary entropies
         score = -(p * p.clamp_min(1e-12).log() + (1 - p) * (1 - p).clamp_min(1e-12).log()).mean(0)
     top = score.topk(n_queries).indices
-    return segments[top], true_rewards[top]
+    return segments[top], true_rewards[top], *(states[top.cpu().numpy()] for states in physics)
 
 
 def optimizer_steps(optimizer) -> int:
@@ -864,6 +955,10 @@ if __name__ == "__main__":
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
+        input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
+        preferences = args.preferences and load_preferences(
+            args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback
+        )
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
@@ -950,11 +1045,18 @@ if __name__ == "__main__":
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
+    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences.npz
     # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
     recent_returns = deque(maxlen=10)  # true returns of the last training episodes, for the teacher's margin
     total_feedback = labeled_feedback = sac_updates = 0
+    if preferences:  # an earlier run's labels: the first pairs of the dataset, counted in the budget
+        inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
+        queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
+        kept = ~np.isnan(preferences["labels"])
+        prefs.add(torch.as_tensor(inputs[kept], device=device), torch.as_tensor(preferences["labels"][kept], device=device))
+        total_feedback, labeled_feedback = len(kept), prefs.size
 
     def sac_update(data: Batch, beta: float = 0.0) -> dict:
         """One SAC gradient step: critics, then actor and temperature, then Polyak targets. Losses stay on device.
@@ -995,16 +1097,28 @@ if __name__ == "__main__":
 
     def feedback_round(sampling: str):
         """Ask the teacher one round of queries, train the reward ensemble on all labels, relabel the whole buffer."""
-        global total_feedback, labeled_feedback
+        global total_feedback, labeled_feedback, start_time
         n_queries = min(args.queries_per_round, args.max_feedback - total_feedback)
-        segments, true_rewards = select_queries(
-            reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise
+        segments, true_rewards, physics = select_queries(
+            reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
+            with_physics=True,
         )
-        margin = float(np.mean(recent_returns)) * args.segment_size / args.episode_length if recent_returns else 0.0
-        keep, labels = teacher(
-            true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
-            args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
-        )
+        if args.teacher == "external" and n_queries:  # a person or a program answers; waiting is not training time
+            rows = segments.cpu().numpy()
+            answers, waited = ask_external_teacher(f"runs/{run_name}", queries.next_round, dict(
+                env_id=args.env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:], physics=physics,
+                true_rewards=true_rewards.cpu().numpy()))
+            keep, labels = torch.as_tensor(~np.isnan(answers), device=device), torch.as_tensor(answers, device=device)
+            labels, start_time = torch.nan_to_num(labels), start_time + waited
+        else:
+            margin = float(np.mean(recent_returns)) * args.segment_size / args.episode_length if recent_returns else 0.0
+            keep, labels = teacher(
+                true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
+                args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
+            )
+        queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics,
+                    torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step)
+        queries.save(f"runs/{run_name}/preferences.npz", args.env_id, obs_dim)
         prefs.add(segments[keep], labels[keep])
         total_feedback, labeled_feedback = total_feedback + n_queries, prefs.size
         writer.add_scalar("pbrl/total_feedback", total_feedback, global_step)
@@ -1064,7 +1178,7 @@ if __name__ == "__main__":
             actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha, alpha=alpha,
             actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
             reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes, prefs=prefs,
-            entropy_stats=entropy_stats,
+            entropy_stats=entropy_stats, queries=queries,
         )
 
     def save_state():
@@ -1123,13 +1237,14 @@ if __name__ == "__main__":
         # TRY NOT TO MODIFY: execute the game and log data.
         env_action = action.cpu().numpy()
         stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
+        physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
         next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
         episode_actions.append(env_action)
         next_obs = torch.as_tensor(next_obs, device=device)
         with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
             predicted_reward, predicted_std = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))
         rb.add(obs, action, next_obs, terminated, float(true_reward), predicted_reward[0], predicted_std[0])
-        episodes.add(obs, action, float(true_reward))
+        episodes.add(obs, action, float(true_reward), physics)
         episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
         obs = next_obs  # CRUCIAL step easy to overlook
         if terminated or truncated:

@@ -221,7 +221,7 @@ def state_of(obj):
         return obj.detach()
     if hasattr(obj, "state_dict"):
         return obj.state_dict()
-    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, int, float))}
+    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
 
 
 @torch.no_grad()

@@ -610,13 +610,15 @@ def test_select_queries_picks_top_scores(sampling, monkeypatch):
     pool_segments = pool_segments * torch.linspace(0.1, 3.0, n_queries * mult)[:, None, None, None]
     requested = []
 
-    def fake_sample(n, length):
+    def fake_sample(n, length, with_physics=False):
         requested.append((n, length))
-        return pool_segments[:n].clone(), pool_rewards[:n].clone()
+        segments = pool_segments[:n].clone(), pool_rewards[:n].clone()
+        return (*segments, np.arange(n)[:, None] * np.ones(2)) if with_physics else segments
 
     monkeypatch.setattr(store, "sample_segments", fake_sample)
     segments, rewards = pebble.select_queries(model, store, n_queries, H, sampling, mult)
-    assert requested == [(n_queries * mult, H)]
+    _, _, physics = pebble.select_queries(model, store, n_queries, H, sampling, mult, with_physics=True)
+    assert requested == [(n_queries * mult, H)] * 2
     assert segments.shape == (n_queries, 2, H, dim) and rewards.shape == (n_queries, 2, H)
     # locate each chosen pair in the pool
     flat = pool_segments.flatten(1)
@@ -627,6 +629,7 @@ def test_select_queries_picks_top_scores(sampling, monkeypatch):
         chosen.append(match[0])
     assert len(set(chosen)) == n_queries  # distinct pairs
     assert torch.equal(rewards, pool_rewards[chosen])  # true rewards travel with their segments
+    assert physics[:, 0].tolist() == chosen  # so do the physics states (here: the pool index)
     score = _scores(model, pool_segments)[sampling]
     unchosen = torch.ones(len(score), dtype=torch.bool)
     unchosen[chosen] = False
