@@ -100,7 +100,8 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     physics = env.unwrapped._env.physics
     with physics.reset_context():
         physics.set_state(saved["physics"][3, 1, 7])
-    real = np.concatenate([np.asarray(v, np.float32).ravel() for v in env.unwrapped._env.task.get_observation(physics).values()])
+    observation = env.unwrapped._env.task.get_observation(physics).values()
+    real = np.concatenate([np.asarray(v, np.float32).ravel() for v in observation])
     np.testing.assert_allclose(saved["obs"][3, 1, 7, :5], real, rtol=1e-5, atol=1e-6)
     # --preferences: the 20 labels seed the next run's dataset and count in its budget (30: two more rounds of 5)
     second = tmp_path / "second"
