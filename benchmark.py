@@ -409,6 +409,7 @@ def run_local(runs: list, args: Args) -> list:
     pending, active, results = deque(runs), {}, []
     print(f"running {len(runs)} runs, {workers} at a time" + (f" on GPUs {','.join(gpus)} "
           f"({args.runs_per_gpu} per GPU)" if gpus else ""), flush=True)
+    previous = signal.signal(signal.SIGTERM, interrupt)  # `kill` stops the sweep as Ctrl-C does
     try:
         while pending or active:
             while pending and len(active) < workers:
@@ -437,8 +438,14 @@ def run_local(runs: list, args: Args) -> list:
             finish_run(spec, returncode, time.time() - process.started)
             results.append((run_id, returncode, spec["log"]))
         results += [(run.run_id, "not started (interrupted)", "") for run in pending]
-        print("interrupted: running runs terminated", flush=True)
+        print("interrupted: running runs terminated (they save their state: the same command resumes them)", flush=True)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return results
+
+
+def interrupt(signum, frame):
+    raise KeyboardInterrupt
 
 
 def make_executor(args: Args):

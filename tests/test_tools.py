@@ -558,8 +558,8 @@ def test_slurm_job_at_its_time_limit_requeues_and_resumes_exactly(tmp_path, monk
 
 @needs_analysis
 def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch):
-    """Ctrl-C on the launcher: its runs get SIGTERM, save their state and stop; the same command again resumes them,
-    and the sweep ends with the points of an uninterrupted one."""
+    """A stopped launcher (Ctrl-C or `kill`): its runs get SIGTERM, save their state and stop; the same command again
+    resumes them, and the sweep ends with the points of an uninterrupted one."""
     monkeypatch.chdir(tmp_path)
     run_id = "sac__cartpole-swingup__noise0.9__budgetnone__seed4"
     flags = ["--methods", "sac", "--env-ids", "cartpole-swingup", "--noises", "0.9", "--seeds", "4",
@@ -572,7 +572,7 @@ def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch
     while not os.path.exists(f"logs-b/scratch/{run_id}/runs/{run_id}/state.pt"):
         assert process.poll() is None, process.communicate()[0]
         time.sleep(0.05)
-    process.send_signal(signal.SIGINT)
+    process.send_signal(signal.SIGTERM)  # not SIGINT: a shell's background job ignores it, as may a CI runner
     output = process.communicate(timeout=300)[0]
     assert "interrupted: running runs terminated" in output and os.path.exists(f"logs-b/{run_id}.failed")
     assert "stopped by SIGTERM" in open(f"logs-b/{run_id}.log").read()
