@@ -3,7 +3,6 @@ scripted teacher, `--preferences` reuse, and the labelling page in a real headle
 import json
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -164,11 +163,11 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
             shutil.copy(tmp_path / "label_app.png", os.environ["R2N_SCREENSHOT"])
         assert os.path.getsize(tmp_path / "label_app.png") > 10_000
         driver.find_element(By.ID, "answer-left").click()  # mouse
-        WebDriverWait(driver, 10).until(lambda d: progress() == "round 0: query 2 of 5")
+        WebDriverWait(driver, 30).until(lambda d: progress() == "round 0: query 2 of 5")
         body = driver.find_element(By.TAG_NAME, "body")
         for key, position in [(Keys.ARROW_RIGHT, 3), ("=", 4), ("s", 5)]:  # keyboard
             body.send_keys(key)
-            WebDriverWait(driver, 10).until(lambda d: progress() == f"round 0: query {position} of 5")
+            WebDriverWait(driver, 30).until(lambda d: progress() == f"round 0: query {position} of 5")
         driver.find_element(By.ID, "answer-right").click()
         wait_for(lambda: (run / "labels" / "0.json").exists(), process, log)
         assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5, "skip", 1]
@@ -182,6 +181,6 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         assert scalars(str(run))["pbrl/labeled_feedback"] == [4, 9]
     finally:
         driver.quit()
-        app.send_signal(signal.SIGINT)
+        app.terminate()  # not SIGINT: a background job (a CI runner) ignores it, and so would the app
         app.wait(timeout=30)
         process.kill()
