@@ -16,7 +16,8 @@ Choices where the paper is silent:
   one evaluation point, and is finished: its last evaluation step is >= `total_timesteps` (the scripts evaluate at the
   last step). `--include-unfinished` also uses unfinished runs.
 - Runs of one group must agree on every hyperparameter except the run-specific ones in `RUN_SPECIFIC_KEYS` (seed,
-  exp_name, logging, device and thread settings that do not change the algorithm). The configuration shared by most
+  exp_name, logging, device and thread settings that do not change the algorithm); a flag the scripts gained later
+  (`ADDED_FLAG_DEFAULTS`) counts at its default for runs recorded before it existed. The configuration shared by most
   runs of the group is kept (a tie goes to the configuration of the alphabetically first run); the other runs are
   skipped as "mismatched settings", naming the differing keys. Two used runs with the same seed in a group: the one
   with the most evaluation steps is kept (then the most recent folder), the others are skipped as duplicates.
@@ -76,6 +77,9 @@ RUN_SPECIFIC_KEYS = frozenset({
     "cuda", "torch_deterministic", "log_freq", "relabel_batch_size", "diagnostic_transitions", "diagnostic_pairs",
     "run_name", "checkpoint_freq", "keep_state",
 })
+# Flags the scripts gained after runs were recorded, with the value those runs had in effect (only the simulated teacher
+# existed before `--teacher`), so that old and new runs of one configuration stay one group.
+ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None}
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
 EVAL_TAG = "eval/episodic_return"
@@ -251,8 +255,9 @@ def load_runs(log_dirs, include_unfinished: bool = False) -> list:
 
 
 def config_of(run: Run) -> tuple:
-    """The hyperparameters that must match within a group."""
-    return tuple(sorted((k, repr(v)) for k, v in run.hparams.items() if k not in RUN_SPECIFIC_KEYS))
+    """The hyperparameters that must match within a group (a flag added after a run was recorded: its default)."""
+    hparams = {**ADDED_FLAG_DEFAULTS, **run.hparams}
+    return tuple(sorted((k, repr(v)) for k, v in hparams.items() if k not in RUN_SPECIFIC_KEYS))
 
 
 def folder_time(run: Run) -> int:

@@ -584,3 +584,15 @@ def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch
     for tag, (steps, values) in reference.scalars.items():
         assert np.array_equal(resumed.scalars[tag][0], steps), tag
         assert tag == "charts/SPS" or np.array_equal(resumed.scalars[tag][1], values), tag
+
+
+def test_flags_added_later_take_their_default_for_older_runs(tmp_path):
+    """Runs recorded before `--teacher` existed group with new simulated-teacher runs; an external-teacher run does not."""
+    root = str(tmp_path / "runs")
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 1, [1.0] * 5)  # an older run: no teacher, no preferences
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 2, [3.0] * 5, teacher="simulated", preferences=None)
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 3, [5.0] * 5, teacher="external", preferences=None)
+    assert analyze.main(analyze.Args(log_dirs=(root,), output_dir=str(tmp_path / "out"), plots=False)) == 0
+    (row,) = read_csv(tmp_path / "out" / "final_return.csv")
+    assert (row["mean"], row["seeds"]) == ("2.0", "2")
+    assert "teacher='external'" in open(tmp_path / "out" / "final_return.md").read()  # skipped, with the reason
