@@ -58,7 +58,7 @@ import random
 import signal
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal, NamedTuple, Optional
 
 import numpy as np
@@ -360,8 +360,9 @@ def open_run(args) -> tuple:
         state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
-    changed = [f"--{name.replace('_', '-')} {state['args'].get(name)} (now {value})" for name, value in vars(args).items()
-               if name not in RESUMABLE_FLAGS and state["args"].get(name) != value]
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
+               if name not in RESUMABLE_FLAGS and saved[name] != value]
     if changed:
         raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
                          f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")

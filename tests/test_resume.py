@@ -181,6 +181,21 @@ def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
     process = start("sac.py", tmp_path, "done")
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 1 and "holds no state.pt to resume" in stderr
+    # a state saved before a flag existed: the flag counts at its default (here --tau, dropped from the saved flags)
+    state = torch.load(tmp_path / "runs" / "a" / "state.pt", weights_only=False)
+    del state["args"]["tau"]
+    torch.save(state, tmp_path / "runs" / "a" / "state.pt")
+    process = start("sac.py", tmp_path, "a", "--tau", "0.01")
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1 and "differs in --tau 0.005 (now 0.01)" in stderr, stderr
+    process = start("sac.py", tmp_path, "a")
+    stdout, stderr = process.communicate(timeout=300)
+    assert process.returncode == 0 and "resuming runs/a/state.pt" in stdout, stderr
+    (tmp_path / "runs" / "a").rename(tmp_path / "runs" / "a-done")
+    process = start("sac.py", tmp_path, "a")  # a new run in the same name: killed right after its first state
+    wait_for(tmp_path / "runs" / "a" / "state.pt", process)
+    process.send_signal(signal.SIGKILL)
+    process.communicate()
     (tmp_path / "runs" / "a" / "state.pt").write_bytes(b"not a state")
     process = start("sac.py", tmp_path, "a")
     _, stderr = process.communicate(timeout=120)
