@@ -68,6 +68,9 @@ class Args:
     """also use runs whose last evaluation step is below `total_timesteps` (groups are then aligned on common steps)"""
     plots: bool = True
     """write the PNG learning curves and connectivity plots (`--no-plots`: tables only)"""
+    readme: str | None = None
+    """also rewrite the part of this Markdown file between the lines `<!-- analyze.py results: start -->` and
+    `<!-- analyze.py results: end -->` with the tables and curves, so a README's results follow the runs"""
 
 
 # Hyperparameters that may differ between the seeds of one group: they name, log or place a run, or change only
@@ -84,6 +87,8 @@ ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None}
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
 EVAL_TAG = "eval/episodic_return"
 SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
+DIAGNOSTIC_TAGS = ("pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy")  # last value, in runs.md
+README_MARKERS = ("<!-- analyze.py results: start -->", "<!-- analyze.py results: end -->")
 PAPER_TASKS = ["cartpole-swingup", "walker-walk", "cheetah-run", "quadruped-walk", "humanoid-stand"]
 PAPER_METHODS = [
     "sac", "anf_sac", "pebble", "r2n_pebble", "surf", "r2n_surf", "rune", "r2n_rune", "set_pebble", "static_pebble",
@@ -101,6 +106,7 @@ class Run:
     status: str = "used"  # "used" or "skipped"
     reason: str = ""
     note: str = ""
+    wall_seconds: float = float("nan")  # first to last event, summed over the starts of a resumed run
 
     @property
     def key(self):
@@ -174,12 +180,19 @@ def parse_hparams(text: str) -> dict:
     return hparams
 
 
+def shown(path: str) -> str:
+    """A path as the outputs name it: relative to the working folder when inside it, so that the committed tables of a
+    results folder regenerate identically from any checkout."""
+    relative = os.path.relpath(path)
+    return path if relative.startswith(os.pardir) else relative
+
+
 def find_event_files(log_dirs) -> list:
     """Every TensorBoard event file under `log_dirs` (recursively), sorted (by folder, then by start time)."""
     found = set()
     for root in log_dirs:
         for path in glob.glob(os.path.join(glob.escape(root), "**", "events.out.tfevents.*"), recursive=True):
-            found.add(os.path.abspath(path))
+            found.add(shown(os.path.abspath(path)))
     return sorted(found)
 
 
@@ -195,15 +208,22 @@ def read_run(path: str, whole_folder: bool = False) -> Run:
     accumulator.Reload()
     tags = accumulator.Tags()
     run = Run(path)
+    times = []
     for tag in tags.get("scalars", []):
-        by_step = {event.step: event.value for event in accumulator.Scalars(tag)}  # a repeated step: the last wins
+        events = accumulator.Scalars(tag)
+        times += [events[0].wall_time, events[-1].wall_time]
+        by_step = {event.step: event.value for event in events}  # a repeated step: the last wins
         steps = np.array(sorted(by_step), dtype=np.int64)
         run.scalars[tag] = (steps, np.array([by_step[s] for s in steps], dtype=np.float64))
     for tag in tags.get("tensors", []):
+        events = accumulator.Tensors(tag)
+        times += [events[0].wall_time, events[-1].wall_time]
         if tag.split("/")[0] == "hyperparameters":
-            values = accumulator.Tensors(tag)[-1].tensor_proto.string_val
+            values = events[-1].tensor_proto.string_val
             if values:
                 run.hparams = parse_hparams(values[0].decode("utf-8", "replace"))
+    if times:
+        run.wall_seconds = max(times) - min(times)
     return run
 
 
@@ -221,6 +241,7 @@ def read_folder(paths: list) -> list:
     if len(runs) > 1 and runs[0].hparams and all(run.status == "used" and not run.hparams for run in runs[1:]):
         run = read_run(paths[0], whole_folder=True)
         run.note = f"resumed {len(paths) - 1} time(s): {len(paths)} event files read as one run"
+        run.wall_seconds = sum(start.wall_seconds for start in runs)
         return [run]
     for run in runs:
         if len(runs) > 1:
@@ -410,42 +431,105 @@ def setting_label(noise, budget) -> str:
     return f"{'-' if budget is None else budget} / {'-' if noise is None else noise}"
 
 
-def write_tables(rows, runs, args: Args):
-    """`final_return.md/.csv`, `auc.md/.csv` (the paper's layout) and `runs.csv` (every run found and its status)."""
-    os.makedirs(args.output_dir, exist_ok=True)
-    skipped = [r for r in runs if r.status == "skipped"]
+METRICS = {  # metric: (title, file name, definition)
+    "final": ("Final Return", "final_return", "the last `eval/episodic_return` of each run"),
+    "auc": ("AUC", "auc", "the sum of the evaluation returns of each run"),
+}
+
+
+def table_lines(rows, metric: str, args: Args) -> list:
+    """The Markdown of one table in the paper's layout: its definition, the table and its notes."""
+    title = METRICS[metric][0]
     h1 = "method > baseline" if args.alternative == "greater" else "baseline > method"
-    for metric, title, definition in (
-        ("final", "Final Return", "the last `eval/episodic_return` of each run"),
-        ("auc", "AUC", "the sum of the evaluation returns of each run"),
-    ):
-        name = "final_return" if metric == "final" else "auc"
-        lines = [
-            f"# {title}", "",
-            f"{title} = {definition}; mean ± standard error over seeds (sample std / sqrt(n)). P Value: one-tailed "
-            f"Welch's t-test against the baseline (`{args.baseline}`"
-            + (f"; {', '.join(args.baseline_for)}" if args.baseline_for else "")
-            + f"), H1: {h1}; * p < {args.significance}.", "",
-            f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds |",
-            "|---|---|---|---|---|---|",
-        ]
-        previous = None
-        for row in rows:
-            cell = (row["task"], row["noise"], row["budget"])
-            first = cell != previous
-            previous = cell
-            p = fmt_p(row[f"{metric}_p"], args.significance)
+    lines = [
+        f"{title} = {METRICS[metric][2]}; mean ± standard error over seeds (sample std / sqrt(n)). P Value: one-tailed "
+        f"Welch's t-test against the baseline (`{args.baseline}`"
+        + (f"; {', '.join(args.baseline_for)}" if args.baseline_for else "")
+        + f"), H1: {h1}; * p < {args.significance}.", "",
+        f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds |",
+        "|---|---|---|---|---|---|",
+    ]
+    previous = None
+    for row in rows:
+        cell = (row["task"], row["noise"], row["budget"])
+        first = cell != previous
+        previous = cell
+        p = fmt_p(row[f"{metric}_p"], args.significance)
+        lines.append(
+            f"| {row['task'] if first else ''} | {setting_label(row['noise'], row['budget']) if first else ''} "
+            f"| {row['method']} | {fmt(row[f'{metric}_mean'])} ± {fmt(row[f'{metric}_se'])} | {p} "
+            f"| {row['seeds']} |"
+        )
+    notes = [f"- {r['task']} {setting_label(r['noise'], r['budget'])} {r['method']}: {n}" for r in rows
+             for n in r["notes"]]
+    return lines + (["", "Notes:", ""] + notes if notes else [])
+
+
+def skipped_lines(runs) -> list:
+    skipped = [r for r in runs if r.status == "skipped"]
+    return [f"Skipped runs ({len(skipped)}; never averaged):", ""] + (
+        [f"- `{r.path}`: {r.reason}" for r in skipped] or ["- none"])
+
+
+def last_value(run: Run, tag: str) -> float:
+    return float(run.scalars[tag][1][-1]) if tag in run.scalars else float("nan")
+
+
+def net_order(net: str):
+    """Agent networks first, then the reward members."""
+    return (not net.startswith(("actor", "qf")), net)
+
+
+def connectivity(run: Run) -> list:
+    """[(net, relevant_active_frac at the last step, chance)] for each sparse input layer of a run. The chance level
+    (relevant columns / all columns) is not logged, but follows from the three metrics of any logged step where both
+    degrees are positive: frac = R*r / (R*r + N*n) for R relevant and N noise columns of mean degrees r and n, so
+    R/N = frac*n / ((1 - frac)*r)."""
+    result = []
+    nets = {m["net"] for tag in run.scalars if (m := SPARSE_TAG.match(tag))}
+    for net in sorted(nets, key=net_order):
+        tags = [f"sparse/{net}/{k}" for k in ("relevant_active_frac", "relevant_degree", "noise_degree")]
+        if not all(tag in run.scalars for tag in tags):
+            continue
+        steps = np.intersect1d(np.intersect1d(run.scalars[tags[0]][0], run.scalars[tags[1]][0]), run.scalars[tags[2]][0])
+        frac, relevant, noise = (run.scalars[t][1][np.searchsorted(run.scalars[t][0], steps)] for t in tags)
+        usable = np.flatnonzero((relevant > 0) & (noise > 0) & (frac > 0) & (frac < 1))
+        chance = float("nan")
+        if len(usable):
+            i = usable[0]
+            ratio = frac[i] * noise[i] / ((1 - frac[i]) * relevant[i])
+            chance = float(ratio / (1 + ratio))
+        result.append((net, float(frac[-1]), chance))
+    return result
+
+
+def runs_lines(groups, rows) -> list:
+    """The Markdown table of every used run, in the order of the tables, then by seed."""
+    order = {(r["task"], r["noise"], r["budget"], r["method"]): i for i, r in enumerate(rows)}
+    lines = [
+        "| run | seed | final return | AUC | wall time | reward steps | `reward_true_corr` | `heldout_accuracy` "
+        "| final `relevant_active_frac` (chance) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for g in sorted(groups, key=lambda g: order[g.key]):
+        for run, curve in zip(g.runs, g.curves):
+            steps, corr, accuracy = (last_value(run, tag) for tag in DIAGNOSTIC_TAGS)
+            sparse = ", ".join(f"{net} {frac:.3f} ({fmt(chance, 3)})" for net, frac, chance in connectivity(run))
+            cell = lambda value, digits, unit="": "–" if not math.isfinite(value) else f"{value:.{digits}f}{unit}"  # noqa: E731
             lines.append(
-                f"| {row['task'] if first else ''} | {setting_label(row['noise'], row['budget']) if first else ''} "
-                f"| {row['method']} | {fmt(row[f'{metric}_mean'])} ± {fmt(row[f'{metric}_se'])} | {p} "
-                f"| {row['seeds']} |"
+                f"| `{os.path.basename(run.folder)}` | {run.seed} | {curve[-1]:.1f} | {curve.sum():.0f} "
+                f"| {cell(run.wall_seconds / 60, 0, ' min')} | {cell(steps, 0)} | {cell(corr, 3)} | {cell(accuracy, 3)} "
+                f"| {sparse or '–'} |"
             )
-        notes = [f"- {r['task']} {setting_label(r['noise'], r['budget'])} {r['method']}: {n}" for r in rows
-                 for n in r["notes"]]
-        if notes:
-            lines += ["", "Notes:", ""] + notes
-        lines += ["", f"Skipped runs ({len(skipped)}; never averaged):", ""]
-        lines += [f"- `{r.path}`: {r.reason}" for r in skipped] or ["- none"]
+    return lines
+
+
+def write_tables(rows, groups, runs, args: Args):
+    """`final_return.md/.csv`, `auc.md/.csv` (the paper's layout), `runs.md` (every used run with its diagnostics) and
+    `runs.csv` (every run found and its status)."""
+    os.makedirs(args.output_dir, exist_ok=True)
+    for metric, (title, name, _) in METRICS.items():
+        lines = [f"# {title}", ""] + table_lines(rows, metric, args) + [""] + skipped_lines(runs)
         with open(os.path.join(args.output_dir, f"{name}.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
         with open(os.path.join(args.output_dir, f"{name}.csv"), "w", newline="") as f:
@@ -460,10 +544,13 @@ def write_tables(rows, runs, args: Args):
                     "" if not math.isfinite(p) else repr(p), int(math.isfinite(p) and p < args.significance),
                     row["baseline"], row["eval_points"], row["last_step"], row["seed_list"], "; ".join(row["notes"]),
                 ])
+    with open(os.path.join(args.output_dir, "runs.md"), "w") as f:
+        f.write("\n".join(["# Runs", "", RUNS_DEFINITION, ""] + runs_lines(groups, rows)) + "\n")
     with open(os.path.join(args.output_dir, "runs.csv"), "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["path", "task", "noise", "budget", "method", "seed", "status", "reason", "eval_points",
-                         "last_step", "final_return", "auc"])
+                         "last_step", "final_return", "auc", "wall_seconds", *(t.split("/")[1] for t in DIAGNOSTIC_TAGS),
+                         "connectivity"])
         for r in runs:
             steps = r.eval_steps
             values = r.scalars.get(EVAL_TAG, (None, np.zeros(0)))[1]
@@ -471,8 +558,58 @@ def write_tables(rows, runs, args: Args):
             writer.writerow([
                 r.path, task, noise, budget, method, r.seed, r.status, r.reason or r.note, len(steps),
                 int(steps[-1]) if len(steps) else "", repr(float(values[-1])) if len(values) else "",
-                repr(float(values.sum())) if len(values) else "",
+                repr(float(values.sum())) if len(values) else "", f"{r.wall_seconds:.0f}",
+                *(repr(last_value(r, tag)) for tag in DIAGNOSTIC_TAGS),
+                " ".join(f"{net}={frac!r}/{chance!r}" for net, frac, chance in connectivity(r)),
             ])
+
+
+RUNS_DEFINITION = (
+    "Every used run. Final return and AUC as in the tables (on the steps common to its group); wall time from its first"
+    " to its last logged event, summed over the starts of a resumed run; the diagnostics at their last logged round:"
+    " cumulative reward-optimiser steps, Pearson correlation of the reward ensemble with the true reward, held-out"
+    " preference accuracy; and for each sparse input layer the share of its active weights on relevant columns, with"
+    " the chance level (relevant columns / all columns) in brackets."
+)
+
+
+def readme_block(rows, groups, runs, args: Args, pngs: list) -> list:
+    """The lines `--readme` puts between its markers: every run, both tables, the skipped runs and the curves."""
+    folder = os.path.dirname(os.path.abspath(args.readme))
+    curves = [p for p in pngs if os.path.basename(os.path.dirname(p)) == "curves"]
+    lines = [f"Written by `analyze.py` from {', '.join(f'`{d}`' for d in args.log_dirs)}. {RUNS_DEFINITION}", ""]
+    lines += runs_lines(groups, rows)
+    for metric in METRICS:
+        lines += [""] + table_lines(rows, metric, args)
+    lines += [""] + skipped_lines(runs)
+    for png in curves:
+        path = os.path.relpath(os.path.abspath(png), folder).replace(os.sep, "/")
+        lines += ["", f"![learning curves: {os.path.splitext(os.path.basename(png))[0]}]({path})"]
+    return lines
+
+
+def check_readme(path: str) -> tuple:
+    """(lines, start marker index, end marker index) of `--readme`, or exit with one line if the file is unreadable or
+    lacks its markers: checked before any work."""
+    try:
+        with open(path) as f:
+            lines = f.read().split("\n")
+    except OSError as e:
+        raise SystemExit(f"analyze: error: --readme {path}: {e.strerror}")
+    stripped = [line.strip() for line in lines]
+    if [stripped.count(marker) for marker in README_MARKERS] != [1, 1] or (
+            stripped.index(README_MARKERS[0]) > stripped.index(README_MARKERS[1])):
+        raise SystemExit(f"analyze: error: --readme {path} needs one line `{README_MARKERS[0]}` followed by one line "
+                         f"`{README_MARKERS[1]}`")
+    return lines, stripped.index(README_MARKERS[0]), stripped.index(README_MARKERS[1])
+
+
+def update_readme(path: str, block: list):
+    """Replace what is between the markers of `path` with `block`, written atomically."""
+    lines, start, end = check_readme(path)
+    with open(path + ".tmp", "w") as f:
+        f.write("\n".join(lines[:start + 1] + block + lines[end:]))
+    os.replace(path + ".tmp", path)
 
 
 def aligned(group: Group, tag: str):
@@ -558,7 +695,7 @@ def write_plots(groups, args: Args) -> list:
             nets = found if nets is None else nets & found
         if not nets:
             continue
-        nets = sorted(nets, key=lambda n: (not n.startswith(("actor", "qf")), n))
+        nets = sorted(nets, key=net_order)
         ncols = min(3, len(nets))
         nrows = math.ceil(len(nets) / ncols)
         fig, axes = plt.subplots(nrows, ncols, figsize=(max(6.0, 4.5 * ncols), 3.4 * nrows + 0.6), squeeze=False)
@@ -577,6 +714,8 @@ def write_plots(groups, args: Args) -> list:
 
 
 def main(args: Args) -> int:
+    if args.readme:
+        check_readme(args.readme)
     missing = [d for d in args.log_dirs if not os.path.isdir(d)]
     for d in missing:
         print(f"analyze: warning: {d} is not a folder", file=sys.stderr)
@@ -593,11 +732,14 @@ def main(args: Args) -> int:
         print("analyze: error: no usable run", file=sys.stderr)
         return 1
     rows = table_rows(groups, args)
-    write_tables(rows, runs, args)
+    write_tables(rows, groups, runs, args)
     written = [os.path.join(args.output_dir, f) for f in ("final_return.md", "final_return.csv", "auc.md", "auc.csv",
-                                                           "runs.csv")]
+                                                           "runs.md", "runs.csv")]
     if args.plots:
         written += write_plots(groups, args)
+    if args.readme:
+        update_readme(args.readme, readme_block(rows, groups, runs, args, written))
+        written.append(args.readme)
     with open(os.path.join(args.output_dir, "final_return.md")) as f:
         print(f.read().split("\n\nNotes:")[0].split("\n\nSkipped runs")[0])
     print("wrote " + ", ".join(written))

@@ -596,3 +596,64 @@ def test_flags_added_later_take_their_default_for_older_runs(tmp_path):
     (row,) = read_csv(tmp_path / "out" / "final_return.csv")
     assert (row["mean"], row["seeds"]) == ("2.0", "2")
     assert "teacher='external'" in open(tmp_path / "out" / "final_return.md").read()  # skipped, with the reason
+
+
+def write_diagnosed_run(folder, seed, starts):
+    """A PbRL run with the study's diagnostics and one sparse net whose input layer has 5 relevant and 46 noise
+    columns, written in `starts` (a resumed run: one event file per start, the table only in the first). Each start is
+    a list of (step, walltime); the eval return is step / 100."""
+    for i, points in enumerate(starts):
+        writer = SummaryWriter(folder)
+        if i == 0:
+            hparams = dict(BASE_HPARAMS, exp_name="r2n_pebble", seed=seed, env_id="cartpole-swingup", noise=0.9,
+                           max_feedback=400, total_timesteps=starts[-1][-1][0])
+            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % "\n".join(f"|{k}|{v}|" for k, v in hparams.items()),
+                            walltime=points[0][1])
+        for step, walltime in points:
+            writer.add_scalar("eval/episodic_return", step / 100, step, walltime=walltime)
+            writer.add_scalar("pbrl/reward_steps", step // 10, step, walltime=walltime)
+            writer.add_scalar("pbrl/reward_true_corr", 0.5 + step / 1e5, step, walltime=walltime)
+            writer.add_scalar("pbrl/heldout_accuracy", 0.75, step, walltime=walltime)
+            relevant, noise = 1.0 + step / 1000, 1.0  # mean active weights per relevant / noise column
+            writer.add_scalar("sparse/actor/relevant_degree", relevant, step, walltime=walltime)
+            writer.add_scalar("sparse/actor/noise_degree", noise, step, walltime=walltime)
+            writer.add_scalar("sparse/actor/relevant_active_frac", 5 * relevant / (5 * relevant + 46 * noise), step,
+                              walltime=walltime)
+        writer.close()
+        (path,) = [p for p in glob.glob(f"{folder}/events.out.tfevents.*") if not os.path.basename(p).startswith("events.out.tfevents.0")]
+        os.rename(path, f"{folder}/events.out.tfevents.0{i}.start")  # in the order of the starts, whatever the clock
+
+
+@needs_analysis
+def test_runs_table_diagnostics_wall_time_and_readme(tmp_path, monkeypatch):
+    """runs.md/runs.csv: per-run final return, AUC, wall time (summed over the starts of a resumed run), the last
+    diagnostics and each sparse layer's connectivity with its chance level (5/51, derived from the logged degrees);
+    paths relative to the working folder; `--readme` rewrites only its marked block, the same way every time."""
+    monkeypatch.chdir(tmp_path)
+    write_diagnosed_run("results/run1", 1, [[(1000, 100.0), (2000, 400.0), (3000, 700.0)]])
+    write_diagnosed_run("results/run2", 2, [[(1000, 100.0), (2000, 160.0)], [(2000, 5000.0), (3000, 5120.0)]])
+    readme = tmp_path / "README.md"
+    text = "# Title\n\nbefore\n<!-- analyze.py results: start -->\nold\n<!-- analyze.py results: end -->\nafter\n"
+    readme.write_text(text)
+    args = analyze.Args(log_dirs=("results",), output_dir="out", readme=str(readme))
+    assert analyze.main(args) == 0
+    rows = {r["seed"]: r for r in read_csv("out/runs.csv")}
+    assert rows["1"]["path"].startswith("results/run1/") and rows["2"]["reason"].startswith("resumed 1 time(s)")
+    assert (rows["1"]["wall_seconds"], rows["2"]["wall_seconds"]) == ("600", "180")  # 60 + 120 s over two starts
+    assert float(rows["1"]["reward_steps"]) == 300 and float(rows["1"]["reward_true_corr"]) == pytest.approx(0.53)
+    net, value = rows["1"]["connectivity"].split("=")
+    frac, chance = map(float, value.split("/"))
+    assert net == "actor" and frac == pytest.approx(20 / 66, rel=1e-6) and chance == pytest.approx(5 / 51, rel=1e-6)
+    table = open("out/runs.md").read()
+    assert "| `run1` | 1 | 30.0 | 60 | 10 min | 300 | 0.530 | 0.750 | actor 0.303 (0.098) |" in table
+    assert "| `run2` | 2 | 30.0 | 60 | 3 min | 300 | 0.530 | 0.750 | actor 0.303 (0.098) |" in table
+    written = readme.read_text()
+    before, block = written.split("<!-- analyze.py results: start -->\n")
+    block, after = block.split("<!-- analyze.py results: end -->")
+    assert before == "# Title\n\nbefore\n" and after == "\nafter\n" and "old" not in block
+    assert "| `run1` | 1 |" in block and "| cartpole-swingup | 400 / 0.9 | r2n_pebble | 30.00 ± 0.00 |" in block
+    assert "![learning curves: cartpole-swingup](out/curves/cartpole-swingup.png)" in block
+    assert analyze.main(args) == 0 and readme.read_text() == written  # regenerates identically
+    readme.write_text("no markers\n")
+    with pytest.raises(SystemExit, match="--readme .* needs one line `<!-- analyze.py results: start -->`"):
+        analyze.main(args)
