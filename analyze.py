@@ -503,6 +503,10 @@ def connectivity(run: Run) -> list:
     return result
 
 
+def cell(value: float, digits: int, unit: str = "") -> str:
+    return "–" if not math.isfinite(value) else f"{value:.{digits}f}{unit}"
+
+
 def runs_lines(groups, rows) -> list:
     """The Markdown table of every used run, in the order of the tables, then by seed."""
     order = {(r["task"], r["noise"], r["budget"], r["method"]): i for i, r in enumerate(rows)}
@@ -515,7 +519,6 @@ def runs_lines(groups, rows) -> list:
         for run, curve in zip(g.runs, g.curves):
             steps, corr, accuracy = (last_value(run, tag) for tag in DIAGNOSTIC_TAGS)
             sparse = ", ".join(f"{net} {frac:.3f} ({fmt(chance, 3)})" for net, frac, chance in connectivity(run))
-            cell = lambda value, digits, unit="": "–" if not math.isfinite(value) else f"{value:.{digits}f}{unit}"  # noqa: E731
             lines.append(
                 f"| `{os.path.basename(run.folder)}` | {run.seed} | {curve[-1]:.1f} | {curve.sum():.0f} "
                 f"| {cell(run.wall_seconds / 60, 0, ' min')} | {cell(steps, 0)} | {cell(corr, 3)} | {cell(accuracy, 3)} "

@@ -607,8 +607,8 @@ def write_diagnosed_run(folder, seed, starts):
         if i == 0:
             hparams = dict(BASE_HPARAMS, exp_name="r2n_pebble", seed=seed, env_id="cartpole-swingup", noise=0.9,
                            max_feedback=400, total_timesteps=starts[-1][-1][0])
-            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % "\n".join(f"|{k}|{v}|" for k, v in hparams.items()),
-                            walltime=points[0][1])
+            table = "\n".join(f"|{k}|{v}|" for k, v in hparams.items())
+            writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}", walltime=points[0][1])
         for step, walltime in points:
             writer.add_scalar("eval/episodic_return", step / 100, step, walltime=walltime)
             writer.add_scalar("pbrl/reward_steps", step // 10, step, walltime=walltime)
@@ -620,8 +620,8 @@ def write_diagnosed_run(folder, seed, starts):
             writer.add_scalar("sparse/actor/relevant_active_frac", 5 * relevant / (5 * relevant + 46 * noise), step,
                               walltime=walltime)
         writer.close()
-        (path,) = [p for p in glob.glob(f"{folder}/events.out.tfevents.*") if not os.path.basename(p).startswith("events.out.tfevents.0")]
-        os.rename(path, f"{folder}/events.out.tfevents.0{i}.start")  # in the order of the starts, whatever the clock
+        (path,) = [p for p in glob.glob(f"{folder}/events.out.tfevents.*") if not p.endswith(".start")]
+        os.rename(path, f"{folder}/events.out.tfevents.0{i}.start")  # named in the order of the starts, whatever the clock
 
 
 @needs_analysis
