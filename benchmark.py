@@ -32,6 +32,7 @@ Choices where the issue is silent:
 """
 import glob
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -329,11 +330,15 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
 
 
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
-    """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker."""
+    """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker, whose `seconds` add up the
+    starts of a resumed run (each start's time is in its log)."""
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
+    with open(spec["log"]) as log:
+        starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s$", log.read(), re.M)]
     kind = "done" if returncode == 0 else "failed"
-    summary = f"exit code {returncode}\nseconds {seconds:.0f}\ncommand {shlex.join(spec['command'])}\n"
+    summary = (f"exit code {returncode}\nseconds {sum(starts):.0f} over {len(starts)} start(s)\n"
+               f"command {shlex.join(spec['command'])}\n")
     summary += f"git commit {spec['commit']}\n"
     if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left

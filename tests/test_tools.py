@@ -5,6 +5,7 @@ import csv
 import glob
 import importlib.util
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -578,7 +579,10 @@ def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch
     assert "stopped by SIGTERM" in open(f"logs-b/{run_id}.log").read()
     result = subprocess.run(sweep, timeout=300, capture_output=True, text=True)
     assert result.returncode == 0 and "1 runs finished" in result.stdout, result.stdout + result.stderr
-    assert "# resumed from its state.pt" in open(f"logs-b/{run_id}.log").read()
+    log = open(f"logs-b/{run_id}.log").read()
+    assert "# resumed from its state.pt" in log
+    starts = [int(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s$", log, re.M)]
+    assert len(starts) == 2 and f"seconds {sum(starts)} over 2 start(s)" in open(f"resumed/{run_id}/done").read()
     (reference,), (resumed,) = [analyze.load_runs([f"{folder}/{run_id}"]) for folder in ("uninterrupted", "resumed")]
     assert resumed.status == "used" and "resumed 1 time(s)" in resumed.note
     for tag, (steps, values) in reference.scalars.items():
