@@ -451,9 +451,9 @@ def table_lines(rows, metric: str, args: Args) -> list:
     ]
     previous = None
     for row in rows:
-        cell = (row["task"], row["noise"], row["budget"])
-        first = cell != previous
-        previous = cell
+        setting = (row["task"], row["noise"], row["budget"])
+        first = setting != previous
+        previous = setting
         p = fmt_p(row[f"{metric}_p"], args.significance)
         lines.append(
             f"| {row['task'] if first else ''} | {setting_label(row['noise'], row['budget']) if first else ''} "
