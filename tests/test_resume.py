@@ -160,6 +160,28 @@ def test_sigterm_saves_the_state_and_exits_then_resumes_exactly(tmp_path):
     assert_same_run("r2n_pebble.py", tmp_path / "runs" / "reference", tmp_path / "runs" / "stopped")
 
 
+def test_videos_of_a_resumed_run_go_to_a_folder_of_their_own(tmp_path, monkeypatch):
+    """`--capture-video` across a resume: the first start's clip stays, the second start's clips go to
+    `videos/{run}/resumed-at-{step}/` (nothing overwritten), and filming changes no number."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")  # no display here: Mesa's EGL (.ci/run installs it)
+    run("pebble.py", tmp_path, "reference")
+    process = start("pebble.py", tmp_path, "filmed", "--capture-video")
+    videos = tmp_path / "videos" / "filmed"
+    wait_for(videos / "rl-video-episode-0.mp4", process)  # the evaluation at step 400 (RecordVideo: episodes 0, 1, 8, ...)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=600)
+    assert process.returncode == 1, stderr[-3000:]
+    step = int(stderr.split("after step ")[1].split(";")[0])
+    assert 400 <= step < 800, f"stopped at step {step}, past the next evaluation: lengthen the run"
+    run("pebble.py", tmp_path, "filmed", "--capture-video")
+    clips = sorted(p.relative_to(videos).as_posix() for p in videos.rglob("*.mp4"))
+    assert clips == ["resumed-at-%d/rl-video-episode-%d.mp4" % (step, i) for i in (0, 1)] + ["rl-video-episode-0.mp4"]
+    for clip in clips:
+        data = (videos / clip).read_bytes()
+        assert data[4:8] == b"ftyp" and len(data) > 1000, clip  # an MP4 with frames, not an empty file
+    assert_same_run("pebble.py", tmp_path / "runs" / "reference", tmp_path / "runs" / "filmed")
+
+
 def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
     process = start("sac.py", tmp_path, "a")
     wait_for(tmp_path / "runs" / "a" / "state.pt", process)
