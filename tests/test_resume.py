@@ -14,7 +14,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from test_scripts import ROOT, SPARSE_TINY, TINY
+from test_scripts import DEVICE, ROOT, SPARSE_TINY, TINY
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -24,7 +24,7 @@ RESUME = ["--total-timesteps", "900", "--feedback-freq", "250", "--eval-freq", "
 ORACLE = [
     "--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "900", "--learning-starts", "200",
     "--episode-length", "100", "--eval-freq", "400", "--eval-episodes", "2", "--hidden-dim", "32", "--batch-size", "32",
-    "--log-freq", "100", "--no-cuda", "--checkpoint-freq", "150",
+    "--log-freq", "100", DEVICE, "--checkpoint-freq", "150",
 ]
 ARGS = {
     "sac.py": ORACLE,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from test_scripts import ROOT, SPARSE_TINY, TINY, run_script
+from test_scripts import DEVICE, ROOT, SPARSE_TINY, TINY, run_script
 
 import pebble  # noqa: E402
 
@@ -58,7 +58,7 @@ def run_in_process_recording_host_reads(script, args, tmp_path, monkeypatch):
 
 
 SAC_TINY = ["--env-id", "cartpole-swingup", "--learning-starts", "200", "--episode-length", "100", "--eval-episodes", "1",
-            "--hidden-dim", "32", "--batch-size", "32", "--log-freq", "100", "--no-cuda"]
+            "--hidden-dim", "32", "--batch-size", "32", "--log-freq", "100", DEVICE]
 
 
 @pytest.mark.parametrize("script", ["pebble.py", "r2n_pebble.py", "sac.py"])

@@ -14,6 +14,8 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PBRL_SCRIPTS = ["pebble.py", "r2n_pebble.py"]
 SPARSE_SCRIPTS = ["r2n_pebble.py"]
+# CI has no GPU, so the script tests run on the CPU; R2N_TEST_CUDA=1 runs them on the GPU (README: "Testing on a GPU")
+DEVICE = "--cuda" if os.environ.get("R2N_TEST_CUDA") == "1" else "--no-cuda"
 
 # Tiny but complete: random steps (0-199), pre-training (200-499), first feedback round + critic reset at 500,
 # rounds every 500 steps until the budget of 20 is spent (5 per round), SAC updates, evaluation and checkpoint
@@ -23,7 +25,7 @@ TINY = [
     "--unsup-steps", "300", "--feedback-freq", "500", "--episode-length", "100", "--eval-freq", "1000",
     "--eval-episodes", "2", "--segment-size", "20", "--max-feedback", "20", "--queries-per-round", "5",
     "--hidden-dim", "32", "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-layers", "2",
-    "--reward-epochs", "20", "--log-freq", "100", "--no-cuda",
+    "--reward-epochs", "20", "--log-freq", "100", DEVICE,
 ]
 SPARSE_TINY = ["--reward-topology-period", "5", "--agent-topology-period", "100"]
 
@@ -120,6 +122,11 @@ def test_smoke_reaches_every_phase(script, tmp_path):
         assert len(set(values["sparse/reward0/relevant_active_frac"])) > 1
         # one reward topology update every 5 reward optimiser steps (the last round precedes the last evaluation)
         assert values["sparse/reward0/topology_updates"][-1] == values["pbrl/reward_steps"][-1] // 5 > 0
+
+
+@pytest.mark.skipif(DEVICE == "--no-cuda", reason="the script tests run on the CPU (R2N_TEST_CUDA=1: on the GPU)")
+def test_gpu_runs_have_a_gpu():
+    assert torch.cuda.is_available(), "R2N_TEST_CUDA=1 but torch sees no GPU: the tests would run on the CPU"
 
 
 def test_same_seed_same_returns(tmp_path):
