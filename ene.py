@@ -243,6 +243,9 @@ def make_env(
         raise ValueError(f"--episode-length must be >= 1, got {episode_length}")
     import shimmy
 
+    # importing shimmy imports dm_control's composer, which sets every DeprecationWarning to 'always'; with NumPy >= 2.5
+    # dm_control's own array code then prints one at every env step. They are dm_control's to fix, not the user's.
+    warnings.filterwarnings("ignore", category=DeprecationWarning, module="dm_control")
     gym.register_envs(shimmy)
     env = gym.make(
         f"dm_control/{env_id}-v0",
