@@ -832,9 +832,9 @@ def load_state_(obj, state):
         obj.copy_(state)
     elif hasattr(obj, "load_state_dict"):
         obj.load_state_dict(state)
-    elif dataclasses.is_dataclass(obj):
+    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
         for name, value in state.items():
-            if isinstance(value, PLAIN):
+            if isinstance(getattr(obj, name), PLAIN):
                 setattr(obj, name, value)
             else:
                 load_state_(getattr(obj, name), value)
