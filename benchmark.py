@@ -30,6 +30,7 @@ Choices where the issue is silent:
   resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
+import functools
 import glob
 import os
 import re
@@ -90,7 +91,12 @@ CPU_STUDY = tuple(
         (CPU_STUDY_MAIN, CPU_STUDY_ARMS, (1, 2, 3)),
     )
 )
-CPU_STUDY_RESULTS = "results/cpu-study"
+# Issue 21's confirmation of the cpu-study's one lead (R2N beats PEBBLE when the reward's early stop is off): the
+# cpu-study's main setting with 8 new seeds per arm (results/early-stop/PROTOCOL.md, fixed before its first run).
+EARLY_STOP = (Preset(CPU_STUDY_MAIN, ("pebble_no_early_stop", "r2n_pebble_no_early_stop"), tuple(range(9, 17)),
+                     CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK),)
+# A preset's results folder: the event file, log and `done` file of each finished run, committed
+RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -118,16 +124,20 @@ PRESETS = {
     ),),
     # the CPU study: cartpole-swingup at noise 0.9 and 0.95, budget 400, 80k steps, 256-wide SAC: 8+8, 5+5, 12, 12 runs
     "cpu-study": CPU_STUDY,
+    # the confirmation of the early-stop lead: cartpole-swingup 0.9/400 at the cpu-study's scale, reward early stop off
+    "early-stop": EARLY_STOP,
 }
 
 
 @dataclass
 class Args:
-    preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study"]] = None
+    preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
+                             "early-stop"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
-    `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`)"""
+    `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
+    confirmation (`results/early-stop`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
     `r2n_pebble_agent_only`); replaces the preset's"""
@@ -160,8 +170,9 @@ class Args:
     run's working folder `scratch/{run_id}`, which keeps its checkpoint)"""
     results_dir: Optional[str] = None
     """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
-    `done` file naming the git commit; a run with that file is finished (default with `--preset cpu-study`:
-    `results/cpu-study`, so that committed results are skipped by the next session)"""
+    `done` file naming the git commit, the device and the numerics flags; a run with that file is finished (default
+    with `--preset cpu-study` or `early-stop`: `results/{preset}`, so that committed results are skipped by the next
+    session)"""
     script_dir: str = ROOT
     """folder holding the scripts"""
     python: str = sys.executable
@@ -272,7 +283,7 @@ def marker(log_dir: str, run_id: str, kind: str) -> str:
 
 
 def results_dir_of(args: Args) -> Optional[str]:
-    return args.results_dir or (CPU_STUDY_RESULTS if args.preset == "cpu-study" else None)
+    return args.results_dir or RESULTS.get(args.preset)
 
 
 def is_done(run: Run, args: Args) -> bool:
@@ -329,6 +340,27 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
     return process
 
 
+# the scripts' flags that change floating-point results; runs that differ in them are never compared (analyze.py)
+NUMERICS_FLAGS = ("--compile", "--tf32", "--cuda-graph")
+
+
+@functools.lru_cache
+def device_of(command: tuple) -> str:
+    """The device a run's script picks: the GPU torch sees (its model), unless the command says `--no-cuda`."""
+    if "--no-cuda" in command:
+        return "cpu"
+    try:
+        import torch
+    except ImportError:
+        return "unknown (torch not importable by the launcher)"
+    return f"cuda ({torch.cuda.get_device_name(0)})" if torch.cuda.is_available() else "cpu"
+
+
+def numerics_of(command: tuple) -> str:
+    flags = [flag for flag in NUMERICS_FLAGS if flag in command]
+    return " ".join(flags) if flags else "default (eager, FP32)"
+
+
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker, whose `seconds` add up the
     starts of a resumed run (each start's time is in its log)."""
@@ -339,7 +371,8 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     kind = "done" if returncode == 0 else "failed"
     summary = (f"exit code {returncode}\nseconds {sum(starts):.0f} over {len(starts)} start(s)\n"
                f"command {shlex.join(spec['command'])}\n")
-    summary += f"git commit {spec['commit']}\n"
+    command = tuple(spec["command"])
+    summary += f"git commit {spec['commit']}\ndevice {device_of(command)}\nnumerics {numerics_of(command)}\n"
     if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
         os.makedirs(spec["results"])
