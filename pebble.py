@@ -716,12 +716,13 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     return waited
 
 
-def save_checkpoint(path: str, args: Args, global_step: int, agent: Agent, reward_model: RewardEnsemble, dims: tuple):
-    """The trained networks, for evaluation and debugging (`state.pt` is what resumes a run)."""
+def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
+    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    agent = saved["agent"]
     checkpoint = {
         "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
         "qf1": agent.qf1.state_dict(), "qf2": agent.qf2.state_dict(), "log_alpha": agent.log_alpha.detach().cpu(),
-        "reward_models": reward_model.member_state_dicts(), **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)),
+        **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)), "reward_models": saved["reward_model"].member_state_dicts(),
     }
     torch.save(checkpoint, path)
 
@@ -1020,8 +1021,8 @@ def ask_external_teacher(folder: str, round_index: int, env_id: str, obs_dim: in
                 print(f"labels: {path}: {e}; waiting for a corrected file", flush=True)
         time.sleep(poll_seconds)
     answers = np.array([np.nan if a == "skip" else a for a in answers], np.float32)
-    keep, labels = torch.as_tensor(~np.isnan(answers), device=segments.device), torch.as_tensor(answers, device=segments.device)
-    return keep, torch.nan_to_num(labels), time.monotonic() - started
+    keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
+    return keep.to(segments.device), labels.to(segments.device), time.monotonic() - started
 
 
 @torch.no_grad()
@@ -1120,7 +1121,8 @@ if __name__ == "__main__":
     pebble_start = args.learning_starts + args.unsup_steps
     try:
         for global_step in range(start_step, args.total_timesteps):
-            phase = "random" if global_step < args.learning_starts else "pre-training" if global_step < pebble_start else "PbRL"
+            phase = ("random" if global_step < args.learning_starts
+                     else "pre-training" if global_step < pebble_start else "PbRL")
             progress.update(global_step, phase, loop.total_feedback)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
@@ -1194,7 +1196,7 @@ if __name__ == "__main__":
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:
-                    save_checkpoint(checkpoint_path, args, global_step, agent, reward_model, (obs_dim_real, obs_dim, act_dim))
+                    save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
 
             if stop_signals or state_due(global_step, args):
                 save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
@@ -1204,7 +1206,7 @@ if __name__ == "__main__":
                     raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
                                      f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
     except NonFinite as e:  # the checkpoint is written first, for debugging
-        save_checkpoint(checkpoint_path, args, global_step, agent, reward_model, (obs_dim_real, obs_dim, act_dim))
+        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
         writer.close()
         raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
 
