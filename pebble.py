@@ -1119,6 +1119,8 @@ if __name__ == "__main__":
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
     pebble_start = args.learning_starts + args.unsup_steps
+    pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
+            run_folder)  # what a feedback round reads and changes
     try:
         for global_step in range(start_step, args.total_timesteps):
             phase = ("random" if global_step < args.learning_starts
@@ -1154,8 +1156,6 @@ if __name__ == "__main__":
                 loop.episode_return, loop.episode_length = 0.0, 0
 
             # ALGO LOGIC: training.
-            pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions,
-                    writer, run_folder)
             if global_step >= args.learning_starts:
                 if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
                     data = rb.sample(args.batch_size)
