@@ -50,6 +50,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # drop 0.2 every 100 reward optimiser steps (counted over the whole run); actor and critics: 0.8, 0.05 every 1000
 # SAC optimiser steps (the reset critic gets a fresh mask and count). Masked weights are exactly 0; their gradients
 # and Adam moments are kept at 0; grown weights start at 0 with zero moments. Target critics are dense Polyak copies.
+import dataclasses
 import importlib.util
 import json
 import math
@@ -58,7 +59,7 @@ import random
 import signal
 import time
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Literal, NamedTuple, Optional
 
 import numpy as np
@@ -74,34 +75,8 @@ import ene
 
 @dataclass
 class Args:
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]
-    """the name of this experiment (run folder and checkpoint name)"""
     seed: int = 1
     """seed of the experiment"""
-    torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
-    cuda: bool = True
-    """if toggled, cuda will be used when available"""
-    track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
-    wandb_project_name: str = "r2n"
-    """the wandb's project name"""
-    wandb_entity: Optional[str] = None
-    """the entity (team) of wandb's project"""
-    capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
-    save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
-    threads: Optional[int] = None
-    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
-    log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
-    run_name: Optional[str] = None
-    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
-    checkpoint_freq: int = 10_000
-    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
-    keep_state: bool = False
-    """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
 
     # Environment arguments
     env_id: str = "cheetah-run"
@@ -182,10 +157,6 @@ class Args:
     """stored transitions (at fixed relative positions in the buffer) behind `pbrl/reward_true_corr`"""
     diagnostic_pairs: int = 256
     """fresh segment pairs per round behind `pbrl/heldout_accuracy` (oracle labels, never trained on nor counted)"""
-    teacher: Literal["simulated", "external"] = "simulated"
-    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (README: labelling)"""
-    preferences: Optional[str] = None
-    """an earlier run's `preferences.npz`: its labels seed the reward model's dataset (they count in the budget)"""
     teacher_beta: float = -1.0
     """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
     teacher_gamma: float = 1.0
@@ -228,6 +199,38 @@ class Args:
     """fraction of an actor/critic input layer's active weights dropped and regrown per topology update"""
     agent_topology_period: int = 1000
     """SAC optimiser steps between topology updates of actor and critics"""
+
+    # Run settings: where the run writes, what it keeps, how it is watched; none of them changes what it learns
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (run folder and checkpoint name)"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be used when available"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "r2n"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    save_model: bool = True
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    threads: Optional[int] = None
+    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    log_freq: int = 1000
+    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+    run_name: Optional[str] = None
+    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    checkpoint_freq: int = 10_000
+    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
+    keep_state: bool = False
+    """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
+    teacher: Literal["simulated", "external"] = "simulated"
+    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (README: labelling)"""
+    preferences: Optional[str] = None
+    """an earlier run's `preferences.npz`: its labels seed the reward model's dataset (they count in the budget)"""
 
 
 def validate_args(args: Args) -> None:
@@ -297,126 +300,80 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
 
-# TRY NOT TO MODIFY: the run folder
-def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
-    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
-    unix_time = int(time.time())
-    while True:
-        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
-        try:
-            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
-            return run_name
-        except FileExistsError:
-            unix_time += 1
+# ALGO LOGIC: the agent's networks
+def layer_init(layer: nn.Linear) -> nn.Linear:
+    nn.init.orthogonal_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
 
 
-# TRY NOT TO MODIFY: console progress
-class Progress:
-    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
-    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
-    only, so it adds no host sync to the training loop."""
+class SoftQNetwork(nn.Module):
+    """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
-        self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim + act_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 1)),
+        )
 
-    def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.monotonic()
-        if phase == self.phase and now - self.time < self.interval:
-            return
-        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
-        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
-        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
-        if self.budget is not None:
-            line += f" | feedback {feedback}/{self.budget}"
-        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
-        print(line, flush=True)
-        self.phase, self.time, self.step = phase, now, step
-
-    @staticmethod
-    def duration(seconds: float) -> str:
-        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
+    def forward(self, obs, actions):
+        return self.net(torch.cat([obs, actions], 1)).squeeze(-1)
 
 
-# TRY NOT TO MODIFY: the training state `state.pt`, for exact resume (README: "Resuming a run")
-RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+LOG_STD_MAX = 2
+LOG_STD_MIN = -5
 
 
-def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
-    if args.run_name is None:
-        return make_run_folder(args.env_id, args.exp_name, args.seed), None
-    path = f"runs/{args.run_name}/state.pt"
-    if not os.path.exists(path):
-        if os.path.exists(f"runs/{args.run_name}"):
-            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
-                             "finished, or stopped before its first state); choose another name or move the folder")
-        os.makedirs(f"runs/{args.run_name}")
-        return args.run_name, None
-    try:
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
-    except Exception as e:  # not a state file, or a truncated one
-        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
-    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
-               if name not in RESUMABLE_FLAGS and saved[name] != value]
-    if changed:
-        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
-                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
-    return args.run_name, state
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
 
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+        super().__init__()
+        self.net = nn.Sequential(
+            layer_init(nn.Linear(obs_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, hidden_dim)),
+            nn.ReLU(),
+            layer_init(nn.Linear(hidden_dim, 2 * act_dim)),
+        )
 
-def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
-    with open(f"{path}.tmp", "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(f"{path}.tmp", path)
+    def forward(self, obs):
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
+        return mean, log_std
 
-
-def state_of(obj):
-    """A tensor itself, `obj.state_dict()`, or for a plain object (episode store, statistics) its tensors and numbers."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach()
-    if hasattr(obj, "state_dict"):
-        return obj.state_dict()
-    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+    def get_action(self, obs):
+        """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
+        mean, log_std = self(obs)
+        eps = torch.randn_like(mean)
+        x = mean + log_std.exp() * eps
+        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
 
 @torch.no_grad()
-def load_state_(obj, state):
-    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
-    if isinstance(obj, torch.Tensor):
-        obj.copy_(state)
-    elif hasattr(obj, "load_state_dict"):
-        obj.load_state_dict(state)
-    else:
-        for name, value in state.items():
-            if isinstance(value, torch.Tensor):
-                getattr(obj, name).copy_(value)
-            else:
-                setattr(obj, name, value)
+def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
+    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    obs = np.stack([env.reset()[0] for env in envs])
+    returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
+    while running.any():
+        actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
+        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
+            return np.full(len(envs), np.nan)
+        for i in np.flatnonzero(running):
+            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
+            returns[i] += reward
+            running[i] = not (terminated or truncated)
+    return returns
 
 
-def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
-    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
-
-
-def set_rng_states(states: dict, device: torch.device):
-    random.setstate(states["python"])
-    np.random.set_state(states["numpy"])
-    torch.set_rng_state(states["torch"])
-    if states["cuda"] is not None and device.type == "cuda":
-        torch.cuda.set_rng_state(states["cuda"], device)
-
-
-# TRY NOT TO MODIFY: replay and preference storage, on the device
+# ALGO LOGIC: the storage PEBBLE learns from: replay buffer (relabelled in place), episodes, labelled pairs
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
     """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
     return x if noise is None else noise.refresh_(x.clone())
@@ -544,158 +501,7 @@ class PreferenceBuffer:
         self.add(state["segments"].to(self.labels.device), state["labels"].to(self.labels.device))
 
 
-# TRY NOT TO MODIFY: the queries and labels of a run (`preferences.npz`) and the external teacher (README: labelling)
-def write_npz(path: str, **arrays):
-    """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(f"{path}.tmp", "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(f"{path}.tmp", path)
-
-
-class QueryLog:
-    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
-    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step."""
-
-    def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
-        self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
-        self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
-        self.physics = np.zeros((0, 2, segment_steps, physics_dim))
-        self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
-
-    @property
-    def next_round(self) -> int:
-        return int(self.rounds.max(initial=-1)) + 1
-
-    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int):
-        new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
-                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
-        for name, value in new.items():
-            setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
-
-    def save(self, path: str, env_id: str, obs_dim: int):
-        write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
-                  true_rewards=self.true_rewards, physics=self.physics, labels=self.labels, rounds=self.rounds,
-                  steps=self.steps)
-
-
-def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
-    """The arrays of an earlier run's `preferences.npz` (`--preferences`); a ValueError with one line if it does not
-    fit this run."""
-    if not os.path.isfile(path):
-        raise ValueError(f"--preferences: no such file: {path}")
-    try:
-        with np.load(path) as data:
-            arrays = {name: data[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
-    except Exception as e:  # not an npz, a missing array
-        raise ValueError(f"--preferences: {path} is not a preferences.npz ({type(e).__name__}: {e})") from None
-    shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
-    if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
-        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
-                         f"features; this run needs {env_id}, {segment_steps} x {input_dim}")
-    if len(arrays["labels"]) > budget:
-        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than --max-feedback {budget}")
-    return arrays
-
-
-def ask_external_teacher(folder: str, round_index: int, queries: dict, poll_seconds: float = 1.0) -> tuple:
-    """`--teacher external`: write the round's `queries` (numpy arrays) to `{folder}/queries/{round}.npz`, then wait
-    for `{folder}/labels/{round}.json`: a JSON list with, per query, 1 (the second segment is preferred), 0 (the
-    first), 0.5 (equal) or "skip". A malformed file gets one line and the wait goes on. Returns (labels with NaN
-    where skipped, seconds spent waiting)."""
-    write_npz(f"{folder}/queries/{round_index}.npz", **queries)
-    path, n, started, seen = f"{folder}/labels/{round_index}.json", len(queries["obs"]), time.monotonic(), None
-    print(f"waiting for labels: {path}, one per query of {folder}/queries/{round_index}.npz (by hand: python "
-          f"label_app.py {folder})", flush=True)
-    while True:
-        stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
-        if stamp is not None and stamp != seen:
-            seen = stamp
-            try:
-                with open(path) as f:
-                    answers = json.load(f)
-                if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
-                    raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
-                return np.array([np.nan if a == "skip" else a for a in answers], np.float32), time.monotonic() - started
-            except ValueError as e:  # a JSONDecodeError too
-                print(f"labels: {path}: {e}; waiting for a corrected file", flush=True)
-        time.sleep(poll_seconds)
-
-
-# ALGO LOGIC: initialize agent here:
-def layer_init(layer: nn.Linear) -> nn.Linear:
-    nn.init.orthogonal_(layer.weight)
-    nn.init.zeros_(layer.bias)
-    return layer
-
-
-class SoftQNetwork(nn.Module):
-    """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
-        super().__init__()
-        self.net = nn.Sequential(
-            layer_init(nn.Linear(obs_dim + act_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, 1)),
-        )
-
-    def forward(self, obs, actions):
-        return self.net(torch.cat([obs, actions], 1)).squeeze(-1)
-
-
-LOG_STD_MAX = 2
-LOG_STD_MIN = -5
-
-
-class Actor(nn.Module):
-    """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
-        super().__init__()
-        self.net = nn.Sequential(
-            layer_init(nn.Linear(obs_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, 2 * act_dim)),
-        )
-
-    def forward(self, obs):
-        mean, log_std = self.net(obs).chunk(2, dim=-1)
-        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1)
-        return mean, log_std
-
-    def get_action(self, obs):
-        """A sampled action, its log-probability, and the deterministic action tanh(mean)."""
-        mean, log_std = self(obs)
-        eps = torch.randn_like(mean)
-        x = mean + log_std.exp() * eps
-        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
-        log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
-        return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
-
-
-@torch.no_grad()
-def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
-    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
-    obs = np.stack([env.reset()[0] for env in envs])
-    returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
-    while running.any():
-        actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
-        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
-            return np.full(len(envs), np.nan)
-        for i in np.flatnonzero(running):
-            obs[i], reward, terminated, truncated, _ = envs[i].step(actions[i])
-            returns[i] += reward
-            running[i] = not (terminated or truncated)
-    return returns
-
-
-# PBRL LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
+# ALGO LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
 class RewardEnsemble(nn.Module):
     """`ensemble_size` reward MLPs on [obs, action] in one batched pass: LeakyReLU hidden layers, tanh output."""
 
@@ -855,24 +661,6 @@ def optimizer_steps(optimizer) -> int:
     return max((int(state["step"]) for state in states), default=0)
 
 
-@torch.no_grad()
-def reward_diagnostics(model: RewardEnsemble, rb: ReplayBuffer, store: EpisodeStore, positions: torch.Tensor,
-                       n_pairs: int, segment_size: int, noise=None) -> dict:
-    """How well the ensemble mean tracks the true reward, for the logs only: Pearson correlation on the stored
-    transitions at fixed relative `positions` of the buffer, and the preference accuracy against the oracle teacher
-    on `n_pairs` fresh segment pairs (never added to the dataset, never counted in the budget; ties left out)."""
-    idx = (positions * rb.size).long()
-    predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
-    correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
-    segments, true_rewards = store.sample_segments(n_pairs, segment_size)
-    returns = model(read_noisy(segments, noise).flatten(0, 2)).mean(0).view(*segments.shape[:3]).sum(-1)
-    _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
-    strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
-    accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
-    correlation, accuracy = torch.stack([correlation, accuracy]).tolist()
-    return {"reward_true_corr": correlation, "heldout_accuracy": accuracy}
-
-
 class RunningMeanStd:
     """Running mean and variance over batches (Chan et al.'s parallel merge), kept on the device."""
 
@@ -909,6 +697,7 @@ def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, st
     distances = knn_distance(points[indices], points, k)
     stats.update(distances)
     return distances / stats.std
+
 
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
@@ -1014,6 +803,504 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     return metrics
 
 
+def sparse_optimizers(saved: dict) -> tuple:
+    """The sparse optimisers among a run's `saved` objects: the actor's, the critics', the reward members'."""
+    return saved["agent"].actor_optimizer, saved["agent"].q_optimizer, saved["reward_optimizer"]
+
+
+# ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
+@dataclass
+class Agent:
+    """SAC's networks, temperature and optimisers. The critic fields are replaced when PEBBLE resets the critic."""
+    actor: Actor
+    actor_optimizer: optim.Optimizer
+    qf1: SoftQNetwork
+    qf2: SoftQNetwork
+    q_optimizer: optim.Optimizer
+    qf1_target: SoftQNetwork
+    qf2_target: SoftQNetwork
+    log_alpha: torch.Tensor
+    alpha: torch.Tensor  # exp(log_alpha), detached and updated in place
+    a_optimizer: optim.Optimizer
+    target_entropy: float
+
+
+def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
+    """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+    q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
+                                  args.agent_sparsity if args.sparse_agent else 0.0, args.agent_drop_fraction,
+                                  args.agent_topology_period)
+    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf1_target.load_state_dict(qf1.state_dict())
+    qf2_target.load_state_dict(qf2.state_dict())
+    return qf1, qf2, q_optimizer, qf1_target, qf2_target
+
+
+def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> Agent:
+    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
+    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight},
+                                      args.agent_sparsity if args.sparse_agent else 0.0, args.agent_drop_fraction,
+                                      args.agent_topology_period)
+    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
+    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
+    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
+    return Agent(actor, actor_optimizer, qf1, qf2, q_optimizer, qf1_target, qf2_target, log_alpha,
+                 log_alpha.detach().exp(), a_optimizer, target_entropy=-float(act_dim))
+
+
+def critic_update(agent: Agent, data: Batch, gamma: float) -> dict:
+    """One gradient step of both critics towards the soft Bellman target. Returns the losses, on the device."""
+    with torch.no_grad():
+        next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
+        next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
+        target_q = data.rewards + (1 - data.dones) * gamma * (next_q - agent.alpha * next_log_pi)
+    qf1_values, qf2_values = agent.qf1(data.obs, data.actions), agent.qf2(data.obs, data.actions)
+    qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
+    agent.q_optimizer.zero_grad()
+    (qf1_loss + qf2_loss).backward()
+    agent.q_optimizer.step()
+    return dict(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
+                qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
+
+
+def actor_update(agent: Agent, data: Batch) -> dict:
+    """One gradient step of the actor, then of the temperature towards the target entropy."""
+    pi, log_pi, _ = agent.actor.get_action(data.obs)
+    actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
+    agent.actor_optimizer.zero_grad()
+    actor_loss.backward()
+    agent.actor_optimizer.step()
+    alpha_loss = (-agent.log_alpha.exp() * (log_pi.detach() + agent.target_entropy)).mean()
+    agent.a_optimizer.zero_grad()
+    alpha_loss.backward()
+    agent.a_optimizer.step()
+    agent.alpha.copy_(agent.log_alpha.detach().exp())
+    return dict(actor_loss=actor_loss.detach(), alpha=agent.alpha.clone(), alpha_loss=alpha_loss.detach())
+
+
+@torch.no_grad()
+def target_update(agent: Agent, tau: float):
+    """Polyak averaging of the target critics."""
+    online = list(agent.qf1.parameters()) + list(agent.qf2.parameters())
+    torch._foreach_lerp_(list(agent.qf1_target.parameters()) + list(agent.qf2_target.parameters()), online, tau)
+
+
+@dataclass
+class Loop:
+    """The main loop's own variables, saved in `state.pt` with the objects."""
+    sac_updates: int = 0
+    total_feedback: int = 0  # queries asked, counted against the budget
+    labeled_feedback: int = 0  # labels obtained (a skipping teacher gives fewer)
+    episode_return: float = 0.0
+    episode_length: int = 0
+    episode_start: Optional[dict] = None  # the env's RNG state at the episode's start (None: the seeded first reset)
+    episode_actions: list = field(default_factory=list)  # the episode's actions so far, to replay it on a resume
+    recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
+    losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
+    last_eval: dict = field(default_factory=dict)
+
+
+def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
+    """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`."""
+    loop.losses.update(critic_update(agent, data, args.gamma))
+    loop.sac_updates += 1
+    if loop.sac_updates % args.actor_update_freq == 0:
+        loop.losses.update(actor_update(agent, data))
+    if loop.sac_updates % args.target_update_freq == 0:
+        target_update(agent, args.tau)
+
+
+def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, reward_model: RewardEnsemble,
+                   reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
+                   queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
+                   unlabeled: PreferenceBuffer) -> float:
+    """Ask the teacher one round of queries, train the reward ensemble on all labels, relabel the whole buffer.
+    Returns the seconds spent waiting for an external teacher (not training time)."""
+    noise, obs_dim = rb.noise, rb.obs.shape[1]
+    n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
+    segments, true_rewards, physics = select_queries(
+        reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
+        args.surf_crop, with_physics=True,
+    )
+    central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # the teacher sees the central steps
+    waited = 0.0
+    if args.teacher == "external" and n_queries:  # a person or a program answers
+        keep, labels, waited = ask_external_teacher(run_folder, queries.next_round, args.env_id, obs_dim,
+                                                    segments[:, :, central], true_rewards[:, :, central],
+                                                    physics[:, :, central])
+    else:
+        margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
+        keep, labels = teacher(
+            true_rewards[:, 0, central], true_rewards[:, 1, central], margin, args.teacher_beta, args.teacher_gamma,
+            args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
+        )
+    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics,
+                torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step)
+    queries.save(f"{run_folder}/preferences.npz", args.env_id, obs_dim)
+    prefs.add(segments[keep], labels[keep])
+    unlabeled_segments, _ = episodes.sample_segments(
+        n_queries * args.surf_unlabeled_ratio, args.segment_size + 2 * args.surf_crop
+    )
+    unlabeled.add(unlabeled_segments, torch.zeros(len(unlabeled_segments), device=unlabeled_segments.device))
+    loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
+    writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
+    writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
+    if prefs.size:  # a round may yield no label at all (skipping teacher)
+        loss, accuracy, epochs, pseudo_label_rate = train_reward(
+            reward_model, reward_optimizer, prefs, unlabeled, args.reward_batch_size, args.reward_epochs,
+            args.surf_crop, args.surf_tau, args.surf_lambda, args.surf_mu,
+        )
+        writer.add_scalar("pbrl/reward_loss", loss, global_step)
+        writer.add_scalar("pbrl/pseudo_label_rate", pseudo_label_rate, global_step)
+        writer.add_scalar("pbrl/reward_accuracy", accuracy, global_step)
+        writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
+        check_finite({"pbrl/reward_loss": loss}, global_step)
+    rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
+    writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
+    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
+                           args.diagnostic_pairs, args.segment_size)
+    return waited
+
+
+def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
+    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    agent = saved["agent"]
+    checkpoint = {
+        "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
+        "qf1": agent.qf1.state_dict(), "qf2": agent.qf2.state_dict(), "log_alpha": agent.log_alpha.detach().cpu(),
+        **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)), "reward_models": saved["reward_model"].member_state_dicts(),
+        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved) for name, mask in opt.named_matrices(opt.masks)},
+    }
+    torch.save(checkpoint, path)
+
+
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop, `preferences.npz`, the external
+# teacher and the diagnostics. The same block in every script (sac.py and anf_sac.py: a subset); a test checks it.
+def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
+    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    unix_time = int(time.time())
+    while True:
+        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
+        try:
+            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            return run_name
+        except FileExistsError:
+            unix_time += 1
+
+
+
+class Progress:
+    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
+    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
+    only, so it adds no host sync to the training loop."""
+
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
+        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+
+    def update(self, step: int, phase: str, feedback: Optional[int] = None):
+        now = time.monotonic()
+        if phase == self.phase and now - self.time < self.interval:
+            return
+        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
+        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
+        if self.budget is not None:
+            line += f" | feedback {feedback}/{self.budget}"
+        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
+        print(line, flush=True)
+        self.phase, self.time, self.step = phase, now, step
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
+
+
+
+# the training state `state.pt`, for exact resume (README: "Resuming a run")
+RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
+                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+
+
+def open_run(args) -> tuple:
+    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    if args.run_name is None:
+        return make_run_folder(args.env_id, args.exp_name, args.seed), None
+    path = f"runs/{args.run_name}/state.pt"
+    if not os.path.exists(path):
+        if os.path.exists(f"runs/{args.run_name}"):
+            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
+                             "finished, or stopped before its first state); choose another name or move the folder")
+        os.makedirs(f"runs/{args.run_name}")
+        return args.run_name, None
+    try:
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+    except Exception as e:  # not a state file, or a truncated one
+        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
+               if name not in RESUMABLE_FLAGS and saved[name] != value]
+    if changed:
+        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
+                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
+    return args.run_name, state
+
+
+def save_atomically(state: dict, path: str):
+    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    with open(f"{path}.tmp", "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(f"{path}.tmp", path)
+
+
+PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of these types are saved as they are
+
+
+def state_of(obj):
+    """A tensor itself, `obj.state_dict()`, a dataclass field by field, or for another plain object (episode store,
+    statistics) its tensors and numbers."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach()
+    if hasattr(obj, "state_dict"):
+        return obj.state_dict()
+    if dataclasses.is_dataclass(obj):
+        return {name: value if isinstance(value, PLAIN) else state_of(value)
+                for name, value in vars(obj).items()}
+    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+
+
+@torch.no_grad()
+def load_state_(obj, state):
+    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
+    if isinstance(obj, torch.Tensor):
+        obj.copy_(state)
+    elif hasattr(obj, "load_state_dict"):
+        obj.load_state_dict(state)
+    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
+        for name, value in state.items():
+            if isinstance(getattr(obj, name), PLAIN):
+                setattr(obj, name, value)
+            else:
+                load_state_(getattr(obj, name), value)
+    else:
+        for name, value in state.items():
+            if isinstance(value, torch.Tensor):
+                getattr(obj, name).copy_(value)
+            else:
+                setattr(obj, name, value)
+
+
+def rng_states(device: torch.device) -> dict:
+    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
+
+
+def set_rng_states(states: dict, device: torch.device):
+    random.setstate(states["python"])
+    np.random.set_state(states["numpy"])
+    torch.set_rng_state(states["torch"])
+    if states["cuda"] is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(states["cuda"], device)
+
+
+
+def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
+    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the points the interrupted one
+    logged after its state (TensorBoard's purge_step)."""
+    if args.track:
+        import wandb
+
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
+                   name=run_name, id=run_name, resume="allow", monitor_gym=True, save_code=True)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
+    if resume is None:
+        table = "\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def catch_stop_signals() -> list:
+    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the returned list; the loop then
+    saves the state at the end of its step and exits."""
+    stop_signals = []
+    for signum in (signal.SIGTERM, signal.SIGUSR2):
+        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
+    return stop_signals
+
+
+class NonFinite(Exception):
+    """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
+
+
+def check_finite(values: dict, step: int):
+    bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
+    if bad is not None:
+        raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
+
+
+def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
+               device: torch.device, envs: list, writer: SummaryWriter):
+    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
+    objects, the generators, the envs' generators and the observation to act on."""
+    writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+    save_atomically({
+        "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
+        "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
+        "envs": [e.rng_state() for e in envs],
+    }, path)
+
+
+def state_due(global_step: int, args) -> bool:
+    """Whether `state.pt` is written after this step: every `checkpoint_freq` steps, and at the end with `keep_state`."""
+    last_step = global_step + 1 == args.total_timesteps
+    return args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0
+
+
+def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
+                progress: Progress, state_path: str) -> tuple:
+    """Start, or continue from the saved state: restore the `saved` objects, replay the running episode on `envs[0]`
+    to where the saved run was, then restore the generators. Returns (observation, first step, seconds trained)."""
+    loop = saved["loop"]
+    if resume is not None:
+        for name, obj in saved.items():
+            load_state_(obj, resume["objects"][name])
+        loop.losses = {name: value.to(device) for name, value in loop.losses.items()}
+    obs = ene.replay_episode(envs[0], args.seed, loop.episode_start, loop.episode_actions)
+    if resume is None:
+        return obs, 0, 0.0
+    set_rng_states(resume["rng"], device)
+    for e, state in zip(envs, resume["envs"]):
+        e.set_rng_state(state)
+    if not np.array_equal(obs, resume["obs"].cpu().numpy()):
+        print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
+              "the run continues, not bitwise as uninterrupted", flush=True)
+    start_step = progress.step = resume["global_step"]
+    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+        for tag, value in loop.last_eval.items():
+            writer.add_scalar(tag, value, start_step)
+    progress.eval_return = loop.last_eval.get("eval/episodic_return")
+    print(f"resuming {state_path} at step {start_step}", flush=True)
+    return obs, start_step, resume["elapsed"]
+
+
+# the queries and labels of a run (`preferences.npz`) and the external teacher (README: labelling)
+def write_npz(path: str, **arrays):
+    """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(f"{path}.tmp", "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(f"{path}.tmp", path)
+
+
+class QueryLog:
+    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
+    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step."""
+
+    def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
+        self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
+        self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
+        self.physics = np.zeros((0, 2, segment_steps, physics_dim))
+        self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+    @property
+    def next_round(self) -> int:
+        return int(self.rounds.max(initial=-1)) + 1
+
+    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int):
+        new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
+                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
+        for name, value in new.items():
+            setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
+
+    def save(self, path: str, env_id: str, obs_dim: int):
+        write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
+                  true_rewards=self.true_rewards, physics=self.physics, labels=self.labels, rounds=self.rounds,
+                  steps=self.steps)
+
+
+def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
+    """The arrays of an earlier run's `preferences.npz` (`--preferences`); a ValueError with one line if it does not
+    fit this run."""
+    if not os.path.isfile(path):
+        raise ValueError(f"--preferences: no such file: {path}")
+    try:
+        with np.load(path) as data:
+            arrays = {name: data[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
+    except Exception as e:  # not an npz, a missing array
+        raise ValueError(f"--preferences: {path} is not a preferences.npz ({type(e).__name__}: {e})") from None
+    shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
+    if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
+        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
+                         f"features; this run needs {env_id}, {segment_steps} x {input_dim}")
+    if len(arrays["labels"]) > budget:
+        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than --max-feedback {budget}")
+    return arrays
+
+
+def ask_external_teacher(folder: str, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor,
+                         true_rewards: torch.Tensor, physics: np.ndarray, poll_seconds: float = 1.0) -> tuple:
+    """`--teacher external`: write the round's queries to `{folder}/queries/{round}.npz`, then wait for
+    `{folder}/labels/{round}.json`: a JSON list with, per query, 1 (the second segment is preferred), 0 (the
+    first), 0.5 (equal) or "skip". A malformed file gets one line and the wait goes on. Returns (the answered
+    pairs' mask, labels with 0 where skipped, both on the segments' device; seconds spent waiting)."""
+    rows = segments.cpu().numpy()
+    write_npz(f"{folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
+              physics=physics, true_rewards=true_rewards.cpu().numpy())
+    path, n, started, seen = f"{folder}/labels/{round_index}.json", len(rows), time.monotonic(), None
+    print(f"waiting for labels: {path}, one per query of {folder}/queries/{round_index}.npz (by hand: python "
+          f"label_app.py {folder})", flush=True)
+    while True:
+        stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
+        if stamp is not None and stamp != seen:
+            seen = stamp
+            try:
+                with open(path) as f:
+                    answers = json.load(f)
+                if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+                    raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
+                break
+            except ValueError as e:  # a JSONDecodeError too
+                print(f"labels: {path}: {e}; waiting for a corrected file", flush=True)
+        time.sleep(poll_seconds)
+    answers = np.array([np.nan if a == "skip" else a for a in answers], np.float32)
+    keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
+    return keep.to(segments.device), labels.to(segments.device), time.monotonic() - started
+
+
+@torch.no_grad()
+def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
+                           positions: torch.Tensor, n_pairs: int, segment_size: int):
+    """How well the ensemble mean tracks the true reward, for the logs only: Pearson correlation on the stored
+    transitions at fixed relative `positions` of the buffer, and the preference accuracy against the oracle teacher
+    on `n_pairs` fresh segment pairs (never added to the dataset, never counted in the budget; ties left out). The
+    pairs come from a generator of their own: fresh every round, the same in a rerun, the training's draws unchanged."""
+    device, noise = rb.obs.device, rb.noise
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(seed + global_step)
+        idx = (positions * rb.size).long()
+        predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
+        correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
+        segments, true_rewards = store.sample_segments(n_pairs, segment_size)
+        returns = model(read_noisy(segments, noise).flatten(0, 2)).mean(0).view(*segments.shape[:3]).sum(-1)
+        _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
+    strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
+    accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
+    correlation, accuracy = torch.stack([correlation, accuracy]).tolist()
+    writer.add_scalar("pbrl/reward_true_corr", correlation, global_step)
+    writer.add_scalar("pbrl/heldout_accuracy", accuracy, global_step)
+
+
 if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
@@ -1026,7 +1313,8 @@ if __name__ == "__main__":
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
-    state_path = f"runs/{run_name}/state.pt"
+    run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
+    checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
     eval_envs = [
         ene.make_env(
@@ -1037,28 +1325,7 @@ if __name__ == "__main__":
     ]
     for i, eval_env in enumerate(eval_envs):
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
-
-    if args.track:
-        import wandb
-
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            id=run_name,
-            resume="allow",
-            monitor_gym=True,
-            save_code=True,
-        )
-    # a resumed run hides the points the interrupted one logged after its state (TensorBoard's purge_step)
-    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
-    if resume is None:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-        )
+    writer = open_writer(args, run_name, resume)
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -1072,39 +1339,15 @@ if __name__ == "__main__":
 
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
-    agent_sparsity = args.agent_sparsity if args.sparse_agent else 0.0
-    reward_sparsity = args.reward_sparsity if args.sparse_reward else 0.0
 
-    # ALGO LOGIC: agent
-    def make_critic():
-        """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
-        qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
-        q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
-                                      agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
-        qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf1_target.load_state_dict(qf1.state_dict())
-        qf2_target.load_state_dict(qf2.state_dict())
-        return qf1, qf2, q_optimizer, qf1_target, qf2_target
-
-    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
-    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight}, agent_sparsity,
-                                      args.agent_drop_fraction, args.agent_topology_period)
-    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
-    target_entropy = -float(act_dim)
-    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
-    alpha = log_alpha.detach().exp()
-    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
-
-    # PBRL LOGIC: reward ensemble and storage
+    # ALGO LOGIC: the agent, the reward ensemble, their storage
+    agent = make_agent(obs_dim, act_dim, args, device)
     reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
     reward_model = reward_model.to(device)
     reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr)
-    reward_optimizer = SparseOptimizer(reward_optimizer, {"reward": reward_model.weights[0]}, reward_sparsity,
-                                       args.reward_drop_fraction, args.reward_topology_period)
+    reward_optimizer = SparseOptimizer(reward_optimizer, {"reward": reward_model.weights[0]},
+                                       args.reward_sparsity if args.sparse_reward else 0.0, args.reward_drop_fraction,
+                                       args.reward_topology_period)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
@@ -1115,270 +1358,120 @@ if __name__ == "__main__":
     # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
-    recent_returns = deque(maxlen=10)  # true returns of the last training episodes, for the teacher's margin
-    total_feedback = labeled_feedback = sac_updates = 0
+    loop = Loop()
     if preferences:  # an earlier run's labels: the first pairs of the dataset, counted in the budget
         inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
         queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
         kept = ~np.isnan(preferences["labels"])
         prefs.add(torch.as_tensor(inputs[kept], device=device), torch.as_tensor(preferences["labels"][kept], device=device))
-        total_feedback, labeled_feedback = len(kept), prefs.size
-
-    def sac_update(data: Batch) -> dict:
-        """One SAC gradient step: critics, then actor and temperature, then Polyak targets. Losses stay on device."""
-        global sac_updates
-        with torch.no_grad():
-            next_actions, next_log_pi, _ = actor.get_action(data.next_obs)
-            next_q = torch.min(qf1_target(data.next_obs, next_actions), qf2_target(data.next_obs, next_actions))
-            target_q = data.rewards + (1 - data.dones) * args.gamma * (next_q - alpha * next_log_pi)
-        qf1_values, qf2_values = qf1(data.obs, data.actions), qf2(data.obs, data.actions)
-        qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
-        q_optimizer.zero_grad()
-        (qf1_loss + qf2_loss).backward()
-        q_optimizer.step()
-        sac_updates += 1
-        losses.update(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
-                      qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
-
-        if sac_updates % args.actor_update_freq == 0:
-            pi, log_pi, _ = actor.get_action(data.obs)
-            actor_loss = (alpha * log_pi - torch.min(qf1(data.obs, pi), qf2(data.obs, pi))).mean()
-            actor_optimizer.zero_grad()
-            actor_loss.backward()
-            actor_optimizer.step()
-            alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
-            a_optimizer.zero_grad()
-            alpha_loss.backward()
-            a_optimizer.step()
-            alpha.copy_(log_alpha.detach().exp())
-            losses.update(actor_loss=actor_loss.detach(), alpha=alpha.clone(), alpha_loss=alpha_loss.detach())
-
-        if sac_updates % args.target_update_freq == 0:
-            with torch.no_grad():
-                online = list(qf1.parameters()) + list(qf2.parameters())
-                torch._foreach_lerp_(list(qf1_target.parameters()) + list(qf2_target.parameters()), online, args.tau)
-        return losses
-
-    def feedback_round(sampling: str):
-        """Ask the teacher one round of queries, store unlabelled pairs, train the reward ensemble on all pairs, relabel
-        the whole buffer."""
-        global total_feedback, labeled_feedback, start_time
-        n_queries = min(args.queries_per_round, args.max_feedback - total_feedback)
-        segments, true_rewards, physics = select_queries(
-            reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
-            args.surf_crop, with_physics=True,
-        )
-        central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # the teacher sees the central steps
-        if args.teacher == "external" and n_queries:  # a person or a program answers; waiting is not training time
-            rows = segments[:, :, central].cpu().numpy()
-            answers, waited = ask_external_teacher(f"runs/{run_name}", queries.next_round, dict(
-                env_id=args.env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
-                physics=physics[:, :, central], true_rewards=true_rewards[:, :, central].cpu().numpy()))
-            keep, labels = torch.as_tensor(~np.isnan(answers), device=device), torch.as_tensor(answers, device=device)
-            labels, start_time = torch.nan_to_num(labels), start_time + waited
-        else:
-            margin = float(np.mean(recent_returns)) * args.segment_size / args.episode_length if recent_returns else 0.0
-            keep, labels = teacher(
-                true_rewards[:, 0, central], true_rewards[:, 1, central], margin, args.teacher_beta, args.teacher_gamma,
-                args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
-            )
-        queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics,
-                    torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step)
-        queries.save(f"runs/{run_name}/preferences.npz", args.env_id, obs_dim)
-        prefs.add(segments[keep], labels[keep])
-        unlabeled_segments, _ = episodes.sample_segments(
-            n_queries * args.surf_unlabeled_ratio, args.segment_size + 2 * args.surf_crop
-        )
-        unlabeled.add(unlabeled_segments, torch.zeros(len(unlabeled_segments), device=device))
-        total_feedback, labeled_feedback = total_feedback + n_queries, prefs.size
-        writer.add_scalar("pbrl/total_feedback", total_feedback, global_step)
-        writer.add_scalar("pbrl/labeled_feedback", labeled_feedback, global_step)
-        if prefs.size:  # a round may yield no label at all (skipping teacher)
-            loss, accuracy, epochs, pseudo_label_rate = train_reward(
-                reward_model, reward_optimizer, prefs, unlabeled, args.reward_batch_size, args.reward_epochs,
-                args.surf_crop, args.surf_tau, args.surf_lambda, args.surf_mu,
-            )
-            writer.add_scalar("pbrl/reward_loss", loss, global_step)
-            writer.add_scalar("pbrl/pseudo_label_rate", pseudo_label_rate, global_step)
-            writer.add_scalar("pbrl/reward_accuracy", accuracy, global_step)
-            writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
-            stop_if_not_finite({"pbrl/reward_loss": loss})
-        rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
-        writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
-        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):  # training's draws unchanged
-            torch.manual_seed(args.seed + global_step)  # fresh pairs every round, the same ones in a rerun
-            diagnostics = reward_diagnostics(
-                reward_model, rb, episodes, diagnostic_positions, args.diagnostic_pairs, args.segment_size, noise
-            )
-        for name, value in diagnostics.items():
-            writer.add_scalar(f"pbrl/{name}", value, global_step)
-
-    def sparse_optimizers():
-        return actor_optimizer, q_optimizer, reward_optimizer
-
-    def save_checkpoint():
-        checkpoint = {
-            "args": vars(args),
-            "global_step": global_step + 1,
-            "actor": actor.state_dict(),
-            "qf1": qf1.state_dict(),
-            "qf2": qf2.state_dict(),
-            "log_alpha": log_alpha.detach().cpu(),
-            "reward_models": reward_model.member_state_dicts(),
-            "masks": {name: mask.cpu() for opt in sparse_optimizers() for name, mask in opt.named_matrices(opt.masks)},
-            "obs_dim_real": obs_dim_real,
-            "obs_dim": obs_dim,
-            "act_dim": act_dim,
-        }
-        torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
-
-    def stop_if_not_finite(values: dict):
-        """A non-finite value ends the run, exit code 1, with one line naming it; the checkpoint is written first."""
-        bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
-        if bad is not None:
-            save_checkpoint()
-            writer.close()
-            raise SystemExit(
-                f"{args.exp_name}: error: non-finite {bad} ({values[bad]}) at step {global_step}; "
-                f"checkpoint for debugging: runs/{run_name}/{args.exp_name}.cleanrl_model"
-            )
-
-    def stateful() -> dict:
-        """Every object the loop changes, by name (`state_of` and `load_state_` save and restore them)."""
-        return dict(
-            actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha, alpha=alpha,
-            actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
-            reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes, prefs=prefs,
-            entropy_stats=entropy_stats, queries=queries, unlabeled=unlabeled,
-        )
-
-    def save_state():
-        """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`."""
-        writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
-        save_atomically({
-            "args": vars(args), "global_step": global_step + 1, "elapsed": time.time() - start_time, "obs": obs,
-            "objects": {name: state_of(obj) for name, obj in stateful().items()}, "rng": rng_states(device),
-            "envs": [e.rng_state() for e in [env, *eval_envs]],
-            "loop": (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions),
-            "feedback": (total_feedback, labeled_feedback, recent_returns),
-        }, state_path)
+        loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size
+    # everything the loop changes, by name: `state.pt` saves and restores exactly these
+    saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb, episodes=episodes,
+                 prefs=prefs, entropy_stats=entropy_stats, queries=queries, unlabeled=unlabeled, loop=loop)
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
-    stop_signals = []  # SIGTERM / SIGUSR2 (SLURM, submitit: preemption, time limit): save the state at this step's end
-    for signum in (signal.SIGTERM, signal.SIGUSR2):
-        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
+    stop_signals = catch_stop_signals()
     progress = Progress(args.total_timesteps, args.max_feedback)
-    episode_return, episode_length, losses, last_eval = 0.0, 0, {}, {}
-    episode_start, episode_actions = None, []  # the episode's start (None: the seeded first reset) and its actions
-    start_step, elapsed = 0, 0.0
-    if resume is not None:
-        for name, obj in stateful().items():
-            load_state_(obj, resume["objects"][name])
-        sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions = resume["loop"]
-        total_feedback, labeled_feedback, recent_returns = resume["feedback"]
-        losses = {name: value.to(device) for name, value in losses.items()}
-    obs = ene.replay_episode(env, args.seed, episode_start, episode_actions)  # a resume: where the saved run was
-    if resume is not None:
-        set_rng_states(resume["rng"], device)
-        for e, state in zip([env, *eval_envs], resume["envs"]):
-            e.set_rng_state(state)
-        if not np.array_equal(obs, resume["obs"].cpu().numpy()):
-            print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
-                  "the run continues, not bitwise as uninterrupted", flush=True)
-        start_step, elapsed, progress.step = resume["global_step"], resume["elapsed"], resume["global_step"]
-        if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
-            for tag, value in last_eval.items():
-                writer.add_scalar(tag, value, start_step)
-        progress.eval_return = last_eval.get("eval/episodic_return")
-        print(f"resuming {state_path} at step {start_step}", flush=True)
-        del resume
+    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
+    del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
     pebble_start = args.learning_starts + args.unsup_steps
-    for global_step in range(start_step, args.total_timesteps):
-        phase = "random" if global_step < args.learning_starts else "pre-training" if global_step < pebble_start else "PbRL"
-        progress.update(global_step, phase, total_feedback)
-        # ALGO LOGIC: put action logic here
-        if global_step < args.learning_starts:
-            action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
-        else:
-            with torch.no_grad():
-                action = actor.get_action(obs.unsqueeze(0))[0][0]
-
-        # TRY NOT TO MODIFY: execute the game and log data.
-        env_action = action.cpu().numpy()
-        stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
-        physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
-        next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
-        episode_actions.append(env_action)
-        next_obs = torch.as_tensor(next_obs, device=device)
-        with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
-            predicted_reward = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0]
-        rb.add(obs, action, next_obs, terminated, float(true_reward), predicted_reward)
-        episodes.add(obs, action, float(true_reward), physics)
-        episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
-        obs = next_obs  # CRUCIAL step easy to overlook
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", episode_return, global_step)
-            writer.add_scalar("charts/episodic_length", episode_length, global_step)
-            recent_returns.append(episode_return)
-            episode_start, episode_actions = env.rng_state(), []
-            obs, _ = env.reset()
-            obs = torch.as_tensor(obs, device=device)
-            episode_return, episode_length = 0.0, 0
-
-        # ALGO LOGIC: training.
-        if global_step >= args.learning_starts:
-            if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
-                data = rb.sample(args.batch_size)
-                points = read_noisy(rb.obs[: rb.size], noise)
-                intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
-                sac_update(data._replace(rewards=intrinsic_reward))
-                losses["state_entropy_reward"] = intrinsic_reward.mean()
-            elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
-                feedback_round("uniform")
-                qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
-                for _ in range(args.reset_updates):
-                    sac_update(rb.sample(args.batch_size))
+    pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
+            run_folder, unlabeled)  # what a feedback round reads and changes
+    try:
+        for global_step in range(start_step, args.total_timesteps):
+            phase = ("random" if global_step < args.learning_starts
+                     else "pre-training" if global_step < pebble_start else "PbRL")
+            progress.update(global_step, phase, loop.total_feedback)
+            # ALGO LOGIC: put action logic here
+            if global_step < args.learning_starts:
+                action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
             else:
-                if (global_step - pebble_start) % args.feedback_freq == 0 and total_feedback < args.max_feedback:
-                    feedback_round(args.query_sampling)
-                sac_update(rb.sample(args.batch_size))
+                with torch.no_grad():
+                    action = agent.actor.get_action(obs.unsqueeze(0))[0][0]
 
-            if global_step % args.log_freq == 0:
-                logged = dict(zip([f"losses/{name}" for name in losses], torch.stack(list(losses.values())).tolist()))
-                for tag, value in logged.items():
-                    writer.add_scalar(tag, value, global_step)
-                stop_if_not_finite(logged)
+            # TRY NOT TO MODIFY: execute the game and log data.
+            env_action = action.cpu().numpy()
+            check_finite({"action": float(env_action.sum())}, global_step)  # on the host already: no extra sync
+            physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
+            next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
+            loop.episode_actions.append(env_action)
+            next_obs = torch.as_tensor(next_obs, device=device)
+            with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
+                predicted_reward = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0]
+            rb.add(obs, action, next_obs, terminated, float(true_reward), predicted_reward)
+            episodes.add(obs, action, float(true_reward), physics)
+            loop.episode_return, loop.episode_length = loop.episode_return + float(true_reward), loop.episode_length + 1
+            obs = next_obs  # CRUCIAL step easy to overlook
+            if terminated or truncated:
+                writer.add_scalar("charts/episodic_return", loop.episode_return, global_step)
+                writer.add_scalar("charts/episodic_length", loop.episode_length, global_step)
+                loop.recent_returns.append(loop.episode_return)
+                loop.episode_start, loop.episode_actions = env.rng_state(), []
+                obs, _ = env.reset()
+                obs = torch.as_tensor(obs, device=device)
+                loop.episode_return, loop.episode_length = 0.0, 0
 
-        if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
-            eval_return = float(evaluate(actor, eval_envs, device).mean())
-            sps = int((global_step + 1) / (time.time() - start_time))
-            last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
-            for tag, value in last_eval.items():
-                writer.add_scalar(tag, value, global_step + 1)
-            for opt in sparse_optimizers():
-                for name, weight in opt.named_matrices(opt.layers):
-                    for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
-                        writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                    writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-            print(
-                f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                f"feedback={total_feedback}/{args.max_feedback} labels={labeled_feedback}",
-                flush=True,
-            )
-            progress.eval_return = eval_return
-            stop_if_not_finite({"eval/episodic_return": eval_return})
-            if args.save_model:
-                save_checkpoint()
+            # ALGO LOGIC: training.
+            if global_step >= args.learning_starts:
+                if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
+                    data = rb.sample(args.batch_size)
+                    points = read_noisy(rb.obs[: rb.size], noise)
+                    intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
+                    sac_update(agent, data._replace(rewards=intrinsic_reward), loop, args)
+                    loop.losses["state_entropy_reward"] = intrinsic_reward.mean()
+                elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
+                    start_time += feedback_round("uniform", global_step, *pbrl)
+                    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = make_critic(
+                        obs_dim, act_dim, args, device
+                    )
+                    for _ in range(args.reset_updates):
+                        sac_update(agent, rb.sample(args.batch_size), loop, args)
+                else:
+                    if (global_step - pebble_start) % args.feedback_freq == 0 and loop.total_feedback < args.max_feedback:
+                        start_time += feedback_round(args.query_sampling, global_step, *pbrl)
+                    sac_update(agent, rb.sample(args.batch_size), loop, args)
 
-        last_step = global_step + 1 == args.total_timesteps
-        if stop_signals or (args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0):
-            save_state()
-            if stop_signals:
-                writer.close()
-                raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
-                                 f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
+                if global_step % args.log_freq == 0:
+                    logged = dict(zip([f"losses/{name}" for name in loop.losses],
+                                      torch.stack(list(loop.losses.values())).tolist()))
+                    for tag, value in logged.items():
+                        writer.add_scalar(tag, value, global_step)
+                    check_finite(logged, global_step)
+
+            if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
+                eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
+                sps = int((global_step + 1) / (time.time() - start_time))
+                loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
+                for tag, value in loop.last_eval.items():
+                    writer.add_scalar(tag, value, global_step + 1)
+                for opt in sparse_optimizers(saved):
+                    for name, weight in opt.named_matrices(opt.layers):
+                        for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
+                            writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}",
+                    flush=True,
+                )
+                progress.eval_return = eval_return
+                check_finite({"eval/episodic_return": eval_return}, global_step)
+                if args.save_model:
+                    save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+
+            if stop_signals or state_due(global_step, args):
+                save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
+                           writer)
+                if stop_signals:
+                    writer.close()
+                    raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
+                                     f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
+    except NonFinite as e:  # the checkpoint is written first, for debugging
+        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+        writer.close()
+        raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
 
     if not args.keep_state and os.path.exists(state_path):
         os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
