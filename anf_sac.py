@@ -28,13 +28,15 @@ Only `ene.py`, the noisy environment, is shared with the other scripts; `--help`
 # "following ANF"; ANF's public code regrows at random, like SET), so the agent moves its connections onto the
 # task-relevant features. Masked weights are exactly 0; their gradients and Adam moments are kept at 0; grown weights
 # start at 0 with zero moments. Target critics are dense Polyak copies. `diff sac.py anf_sac.py` is that change.
+import dataclasses
 import importlib.util
 import math
 import os
 import random
 import signal
 import time
-from dataclasses import dataclass, fields
+from collections import deque
+from dataclasses import dataclass, field, fields
 from typing import Literal, NamedTuple, Optional
 
 import numpy as np
@@ -50,34 +52,8 @@ import ene
 
 @dataclass
 class Args:
-    exp_name: str = os.path.basename(__file__)[: -len(".py")]
-    """the name of this experiment (run folder and checkpoint name)"""
     seed: int = 1
     """seed of the experiment"""
-    torch_deterministic: bool = True
-    """if toggled, `torch.backends.cudnn.deterministic=True`"""
-    cuda: bool = True
-    """if toggled, cuda will be used when available"""
-    track: bool = False
-    """if toggled, this experiment will be tracked with Weights and Biases"""
-    wandb_project_name: str = "r2n"
-    """the wandb's project name"""
-    wandb_entity: Optional[str] = None
-    """the entity (team) of wandb's project"""
-    capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
-    save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
-    threads: Optional[int] = None
-    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
-    log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
-    run_name: Optional[str] = None
-    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
-    checkpoint_freq: int = 10_000
-    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
-    keep_state: bool = False
-    """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
 
     # Environment arguments
     env_id: str = "cheetah-run"
@@ -125,6 +101,34 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
+    # Run settings: where the run writes, what it keeps, how it is watched; none of them changes what it learns
+    exp_name: str = os.path.basename(__file__)[: -len(".py")]
+    """the name of this experiment (run folder and checkpoint name)"""
+    torch_deterministic: bool = True
+    """if toggled, `torch.backends.cudnn.deterministic=True`"""
+    cuda: bool = True
+    """if toggled, cuda will be used when available"""
+    track: bool = False
+    """if toggled, this experiment will be tracked with Weights and Biases"""
+    wandb_project_name: str = "r2n"
+    """the wandb's project name"""
+    wandb_entity: Optional[str] = None
+    """the entity (team) of wandb's project"""
+    capture_video: bool = False
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    save_model: bool = True
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    threads: Optional[int] = None
+    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    log_freq: int = 1000
+    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+    run_name: Optional[str] = None
+    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    checkpoint_freq: int = 10_000
+    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
+    keep_state: bool = False
+    """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
+
     # ANF arguments: dynamic sparse training (RigL) of the input layers of actor and critics
     agent_sparsity: float = 0.8
     """fraction of the actor's and critics' input-layer weights that are zero"""
@@ -155,182 +159,7 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
 
-# TRY NOT TO MODIFY: the run folder
-def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
-    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
-    unix_time = int(time.time())
-    while True:
-        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
-        try:
-            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
-            return run_name
-        except FileExistsError:
-            unix_time += 1
-
-
-# TRY NOT TO MODIFY: console progress
-class Progress:
-    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
-    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
-    only, so it adds no host sync to the training loop."""
-
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
-        self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
-
-    def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.monotonic()
-        if phase == self.phase and now - self.time < self.interval:
-            return
-        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
-        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
-        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
-        if self.budget is not None:
-            line += f" | feedback {feedback}/{self.budget}"
-        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
-        print(line, flush=True)
-        self.phase, self.time, self.step = phase, now, step
-
-    @staticmethod
-    def duration(seconds: float) -> str:
-        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
-
-
-# TRY NOT TO MODIFY: the training state `state.pt`, for exact resume (README: "Resuming a run")
-RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
-
-
-def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
-    if args.run_name is None:
-        return make_run_folder(args.env_id, args.exp_name, args.seed), None
-    path = f"runs/{args.run_name}/state.pt"
-    if not os.path.exists(path):
-        if os.path.exists(f"runs/{args.run_name}"):
-            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
-                             "finished, or stopped before its first state); choose another name or move the folder")
-        os.makedirs(f"runs/{args.run_name}")
-        return args.run_name, None
-    try:
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
-    except Exception as e:  # not a state file, or a truncated one
-        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
-    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
-               if name not in RESUMABLE_FLAGS and saved[name] != value]
-    if changed:
-        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
-                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
-    return args.run_name, state
-
-
-def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
-    with open(f"{path}.tmp", "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(f"{path}.tmp", path)
-
-
-def state_of(obj):
-    """A tensor itself, `obj.state_dict()`, or for a plain object (episode store, statistics) its tensors and numbers."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach()
-    if hasattr(obj, "state_dict"):
-        return obj.state_dict()
-    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
-
-
-@torch.no_grad()
-def load_state_(obj, state):
-    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
-    if isinstance(obj, torch.Tensor):
-        obj.copy_(state)
-    elif hasattr(obj, "load_state_dict"):
-        obj.load_state_dict(state)
-    else:
-        for name, value in state.items():
-            if isinstance(value, torch.Tensor):
-                getattr(obj, name).copy_(value)
-            else:
-                setattr(obj, name, value)
-
-
-def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
-    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
-
-
-def set_rng_states(states: dict, device: torch.device):
-    random.setstate(states["python"])
-    np.random.set_state(states["numpy"])
-    torch.set_rng_state(states["torch"])
-    if states["cuda"] is not None and device.type == "cuda":
-        torch.cuda.set_rng_state(states["cuda"], device)
-
-
-# TRY NOT TO MODIFY: replay storage, on the device
-def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
-    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
-    return x if noise is None else noise.refresh_(x.clone())
-
-
-class Batch(NamedTuple):
-    obs: torch.Tensor
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    next_obs: torch.Tensor
-    dones: torch.Tensor
-    indices: torch.Tensor
-
-
-class ReplayBuffer:
-    """Preallocated circular buffer of transitions; rewards are the environment's."""
-
-    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
-        self.obs = torch.zeros((capacity, obs_dim), device=device)
-        self.next_obs = torch.zeros((capacity, obs_dim), device=device)
-        self.actions = torch.zeros((capacity, act_dim), device=device)
-        self.rewards = torch.zeros(capacity, device=device)
-        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
-        self.dones = torch.zeros(capacity, device=device)
-        self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
-
-    def add(self, obs, action, next_obs, terminated: bool, true_reward: float, reward):
-        self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
-        self.dones[self.pos], self.true_rewards[self.pos] = float(terminated), true_reward
-        self.rewards[self.pos] = reward
-        self.pos = (self.pos + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
-
-    def sample(self, batch_size: int) -> Batch:
-        idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
-        obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
-        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
-
-    def state_dict(self) -> dict:
-        """The stored rows only, and `next_obs` only where it is not the next row's `obs` (episode ends, newest row)."""
-        n = self.size
-        rows = {name: x[:n] if n == len(x) else x[:n].clone()  # a slice alone would save the whole preallocation
-                for name, x in vars(self).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
-        own = torch.ones(n, dtype=torch.bool, device=self.obs.device)
-        own[:-1] = (self.next_obs[: n - 1].view(torch.int32) != self.obs[1:n].view(torch.int32)).any(1)  # bitwise
-        return {"pos": self.pos, "size": n, "rows": rows, "own_next_obs": own, "next_obs": self.next_obs[:n][own]}
-
-    def load_state_dict(self, state: dict):
-        self.pos, self.size, n = state["pos"], state["size"], state["size"]
-        for name, x in state["rows"].items():
-            getattr(self, name)[:n] = x
-        self.next_obs[: n - 1] = self.obs[1:n]
-        self.next_obs[:n][state["own_next_obs"].to(self.obs.device)] = state["next_obs"].to(self.obs.device)
-
-
-# ALGO LOGIC: initialize agent here:
+# ALGO LOGIC: the agent's networks
 def layer_init(layer: nn.Linear) -> nn.Linear:
     nn.init.orthogonal_(layer.weight)
     nn.init.zeros_(layer.bias)
@@ -401,6 +230,62 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
             returns[i] += reward
             running[i] = not (terminated or truncated)
     return returns
+
+
+# ALGO LOGIC: the replay buffer, on the device
+def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
+    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    return x if noise is None else noise.refresh_(x.clone())
+
+
+class Batch(NamedTuple):
+    obs: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    next_obs: torch.Tensor
+    dones: torch.Tensor
+    indices: torch.Tensor
+
+
+class ReplayBuffer:
+    """Preallocated circular buffer of transitions; rewards are the environment's."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
+        self.obs = torch.zeros((capacity, obs_dim), device=device)
+        self.next_obs = torch.zeros((capacity, obs_dim), device=device)
+        self.actions = torch.zeros((capacity, act_dim), device=device)
+        self.rewards = torch.zeros(capacity, device=device)
+        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
+        self.dones = torch.zeros(capacity, device=device)
+        self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
+
+    def add(self, obs, action, next_obs, terminated: bool, true_reward: float, reward):
+        self.obs[self.pos], self.actions[self.pos], self.next_obs[self.pos] = obs, action, next_obs
+        self.dones[self.pos], self.true_rewards[self.pos] = float(terminated), true_reward
+        self.rewards[self.pos] = reward
+        self.pos = (self.pos + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch_size: int) -> Batch:
+        idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
+        obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
+        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
+
+    def state_dict(self) -> dict:
+        """The stored rows only, and `next_obs` only where it is not the next row's `obs` (episode ends, newest row)."""
+        n = self.size
+        rows = {name: x[:n] if n == len(x) else x[:n].clone()  # a slice alone would save the whole preallocation
+                for name, x in vars(self).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
+        own = torch.ones(n, dtype=torch.bool, device=self.obs.device)
+        own[:-1] = (self.next_obs[: n - 1].view(torch.int32) != self.obs[1:n].view(torch.int32)).any(1)  # bitwise
+        return {"pos": self.pos, "size": n, "rows": rows, "own_next_obs": own, "next_obs": self.next_obs[:n][own]}
+
+    def load_state_dict(self, state: dict):
+        self.pos, self.size, n = state["pos"], state["size"], state["size"]
+        for name, x in state["rows"].items():
+            getattr(self, name)[:n] = x
+        self.next_obs[: n - 1] = self.obs[1:n]
+        self.next_obs[:n][state["own_next_obs"].to(self.obs.device)] = state["next_obs"].to(self.obs.device)
 
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
@@ -506,6 +391,336 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     return metrics
 
 
+# ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
+@dataclass
+class Agent:
+    """SAC's networks, temperature and optimisers. The critic fields are replaced when PEBBLE resets the critic."""
+    actor: Actor
+    actor_optimizer: optim.Optimizer
+    qf1: SoftQNetwork
+    qf2: SoftQNetwork
+    q_optimizer: optim.Optimizer
+    qf1_target: SoftQNetwork
+    qf2_target: SoftQNetwork
+    log_alpha: torch.Tensor
+    alpha: torch.Tensor  # exp(log_alpha), detached and updated in place
+    a_optimizer: optim.Optimizer
+    target_entropy: float
+
+
+def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
+    """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+    q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
+                                  args.agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
+    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf1_target.load_state_dict(qf1.state_dict())
+    qf2_target.load_state_dict(qf2.state_dict())
+    return qf1, qf2, q_optimizer, qf1_target, qf2_target
+
+
+def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> Agent:
+    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
+    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight}, args.agent_sparsity,
+                                      args.agent_drop_fraction, args.agent_topology_period)
+    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
+    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
+    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
+    return Agent(actor, actor_optimizer, qf1, qf2, q_optimizer, qf1_target, qf2_target, log_alpha,
+                 log_alpha.detach().exp(), a_optimizer, target_entropy=-float(act_dim))
+
+
+def critic_update(agent: Agent, data: Batch, gamma: float) -> dict:
+    """One gradient step of both critics towards the soft Bellman target. Returns the losses, on the device."""
+    with torch.no_grad():
+        next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
+        next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
+        target_q = data.rewards + (1 - data.dones) * gamma * (next_q - agent.alpha * next_log_pi)
+    qf1_values, qf2_values = agent.qf1(data.obs, data.actions), agent.qf2(data.obs, data.actions)
+    qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
+    agent.q_optimizer.zero_grad()
+    (qf1_loss + qf2_loss).backward()
+    agent.q_optimizer.step()
+    return dict(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
+                qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
+
+
+def actor_update(agent: Agent, data: Batch) -> dict:
+    """One gradient step of the actor, then of the temperature towards the target entropy."""
+    pi, log_pi, _ = agent.actor.get_action(data.obs)
+    actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
+    agent.actor_optimizer.zero_grad()
+    actor_loss.backward()
+    agent.actor_optimizer.step()
+    alpha_loss = (-agent.log_alpha.exp() * (log_pi.detach() + agent.target_entropy)).mean()
+    agent.a_optimizer.zero_grad()
+    alpha_loss.backward()
+    agent.a_optimizer.step()
+    agent.alpha.copy_(agent.log_alpha.detach().exp())
+    return dict(actor_loss=actor_loss.detach(), alpha=agent.alpha.clone(), alpha_loss=alpha_loss.detach())
+
+
+@torch.no_grad()
+def target_update(agent: Agent, tau: float):
+    """Polyak averaging of the target critics."""
+    online = list(agent.qf1.parameters()) + list(agent.qf2.parameters())
+    torch._foreach_lerp_(list(agent.qf1_target.parameters()) + list(agent.qf2_target.parameters()), online, tau)
+
+
+@dataclass
+class Loop:
+    """The main loop's own variables, saved in `state.pt` with the objects."""
+    sac_updates: int = 0
+    episode_return: float = 0.0
+    episode_length: int = 0
+    episode_start: Optional[dict] = None  # the env's RNG state at the episode's start (None: the seeded first reset)
+    episode_actions: list = field(default_factory=list)  # the episode's actions so far, to replay it on a resume
+    losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
+    last_eval: dict = field(default_factory=dict)
+
+
+def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
+    """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`."""
+    loop.losses.update(critic_update(agent, data, args.gamma))
+    loop.sac_updates += 1
+    if loop.sac_updates % args.actor_update_freq == 0:
+        loop.losses.update(actor_update(agent, data))
+    if loop.sac_updates % args.target_update_freq == 0:
+        target_update(agent, args.tau)
+
+
+def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
+    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    agent = saved["agent"]
+    checkpoint = {
+        "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
+        "qf1": agent.qf1.state_dict(), "qf2": agent.qf2.state_dict(), "log_alpha": agent.log_alpha.detach().cpu(),
+        **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)),
+        "masks": {name: mask.cpu() for opt in (agent.actor_optimizer, agent.q_optimizer)
+                  for name, mask in opt.named_matrices(opt.masks)},
+    }
+    torch.save(checkpoint, path)
+
+
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop, `preferences.npz`, the external
+# teacher and the diagnostics. The same block in every script (sac.py and anf_sac.py: a subset); a test checks it.
+def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
+    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    unix_time = int(time.time())
+    while True:
+        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
+        try:
+            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            return run_name
+        except FileExistsError:
+            unix_time += 1
+
+
+
+class Progress:
+    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
+    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
+    only, so it adds no host sync to the training loop."""
+
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
+        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+
+    def update(self, step: int, phase: str, feedback: Optional[int] = None):
+        now = time.monotonic()
+        if phase == self.phase and now - self.time < self.interval:
+            return
+        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
+        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
+        if self.budget is not None:
+            line += f" | feedback {feedback}/{self.budget}"
+        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
+        print(line, flush=True)
+        self.phase, self.time, self.step = phase, now, step
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
+
+
+
+# the training state `state.pt`, for exact resume (README: "Resuming a run")
+RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
+                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+
+
+def open_run(args) -> tuple:
+    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    if args.run_name is None:
+        return make_run_folder(args.env_id, args.exp_name, args.seed), None
+    path = f"runs/{args.run_name}/state.pt"
+    if not os.path.exists(path):
+        if os.path.exists(f"runs/{args.run_name}"):
+            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
+                             "finished, or stopped before its first state); choose another name or move the folder")
+        os.makedirs(f"runs/{args.run_name}")
+        return args.run_name, None
+    try:
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+    except Exception as e:  # not a state file, or a truncated one
+        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
+               if name not in RESUMABLE_FLAGS and saved[name] != value]
+    if changed:
+        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
+                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
+    return args.run_name, state
+
+
+def save_atomically(state: dict, path: str):
+    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    with open(f"{path}.tmp", "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(f"{path}.tmp", path)
+
+
+PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of these types are saved as they are
+
+
+def state_of(obj):
+    """A tensor itself, `obj.state_dict()`, a dataclass field by field, or for another plain object (episode store,
+    statistics) its tensors and numbers."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach()
+    if hasattr(obj, "state_dict"):
+        return obj.state_dict()
+    if dataclasses.is_dataclass(obj):
+        return {name: value if isinstance(value, PLAIN) else state_of(value)
+                for name, value in vars(obj).items()}
+    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+
+
+@torch.no_grad()
+def load_state_(obj, state):
+    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
+    if isinstance(obj, torch.Tensor):
+        obj.copy_(state)
+    elif hasattr(obj, "load_state_dict"):
+        obj.load_state_dict(state)
+    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
+        for name, value in state.items():
+            if isinstance(getattr(obj, name), PLAIN):
+                setattr(obj, name, value)
+            else:
+                load_state_(getattr(obj, name), value)
+    else:
+        for name, value in state.items():
+            if isinstance(value, torch.Tensor):
+                getattr(obj, name).copy_(value)
+            else:
+                setattr(obj, name, value)
+
+
+def rng_states(device: torch.device) -> dict:
+    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
+    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
+
+
+def set_rng_states(states: dict, device: torch.device):
+    random.setstate(states["python"])
+    np.random.set_state(states["numpy"])
+    torch.set_rng_state(states["torch"])
+    if states["cuda"] is not None and device.type == "cuda":
+        torch.cuda.set_rng_state(states["cuda"], device)
+
+
+
+def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
+    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the points the interrupted one
+    logged after its state (TensorBoard's purge_step)."""
+    if args.track:
+        import wandb
+
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
+                   name=run_name, id=run_name, resume="allow", monitor_gym=True, save_code=True)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
+    if resume is None:
+        table = "\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])
+        writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
+    return writer
+
+
+def catch_stop_signals() -> list:
+    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the returned list; the loop then
+    saves the state at the end of its step and exits."""
+    stop_signals = []
+    for signum in (signal.SIGTERM, signal.SIGUSR2):
+        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
+    return stop_signals
+
+
+class NonFinite(Exception):
+    """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
+
+
+def check_finite(values: dict, step: int):
+    bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
+    if bad is not None:
+        raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
+
+
+def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
+               device: torch.device, envs: list, writer: SummaryWriter):
+    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
+    objects, the generators, the envs' generators and the observation to act on."""
+    writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+    save_atomically({
+        "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
+        "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
+        "envs": [e.rng_state() for e in envs],
+    }, path)
+
+
+def state_due(global_step: int, args) -> bool:
+    """Whether `state.pt` is written after this step: every `checkpoint_freq` steps, and at the end with `keep_state`."""
+    last_step = global_step + 1 == args.total_timesteps
+    return args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0
+
+
+def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
+                progress: Progress, state_path: str) -> tuple:
+    """Start, or continue from the saved state: restore the `saved` objects, replay the running episode on `envs[0]`
+    to where the saved run was, then restore the generators. Returns (observation, first step, seconds trained)."""
+    loop = saved["loop"]
+    if resume is not None:
+        for name, obj in saved.items():
+            load_state_(obj, resume["objects"][name])
+        loop.losses = {name: value.to(device) for name, value in loop.losses.items()}
+    obs = ene.replay_episode(envs[0], args.seed, loop.episode_start, loop.episode_actions)
+    if resume is None:
+        return obs, 0, 0.0
+    set_rng_states(resume["rng"], device)
+    for e, state in zip(envs, resume["envs"]):
+        e.set_rng_state(state)
+    if not np.array_equal(obs, resume["obs"].cpu().numpy()):
+        print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
+              "the run continues, not bitwise as uninterrupted", flush=True)
+    start_step = progress.step = resume["global_step"]
+    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+        for tag, value in loop.last_eval.items():
+            writer.add_scalar(tag, value, start_step)
+    progress.eval_return = loop.last_eval.get("eval/episodic_return")
+    print(f"resuming {state_path} at step {start_step}", flush=True)
+    return obs, start_step, resume["elapsed"]
+
+
 if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
@@ -514,7 +729,8 @@ if __name__ == "__main__":
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
-    state_path = f"runs/{run_name}/state.pt"
+    run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
+    checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
     eval_envs = [
         ene.make_env(
@@ -525,28 +741,7 @@ if __name__ == "__main__":
     ]
     for i, eval_env in enumerate(eval_envs):
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
-
-    if args.track:
-        import wandb
-
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            id=run_name,
-            resume="allow",
-            monitor_gym=True,
-            save_code=True,
-        )
-    # a resumed run hides the points the interrupted one logged after its state (TensorBoard's purge_step)
-    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
-    if resume is None:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n%s" % ("\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])),
-        )
+    writer = open_writer(args, run_name, resume)
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -561,205 +756,86 @@ if __name__ == "__main__":
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
 
-    # ALGO LOGIC: agent
-    def make_critic():
-        """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
-        qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
-        q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
-                                      args.agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
-        qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-        qf1_target.load_state_dict(qf1.state_dict())
-        qf2_target.load_state_dict(qf2.state_dict())
-        return qf1, qf2, q_optimizer, qf1_target, qf2_target
-
-    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
-    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight}, args.agent_sparsity,
-                                      args.agent_drop_fraction, args.agent_topology_period)
-    qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic()
-    target_entropy = -float(act_dim)
-    log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
-    alpha = log_alpha.detach().exp()
-    a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
-
-    # ALGO LOGIC: storage
+    # ALGO LOGIC: the agent and its storage
+    agent = make_agent(obs_dim, act_dim, args, device)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
-    sac_updates = 0
-
-    def sac_update(data: Batch) -> dict:
-        """One SAC gradient step: critics, then actor and temperature, then Polyak targets. Losses stay on device."""
-        global sac_updates
-        with torch.no_grad():
-            next_actions, next_log_pi, _ = actor.get_action(data.next_obs)
-            next_q = torch.min(qf1_target(data.next_obs, next_actions), qf2_target(data.next_obs, next_actions))
-            target_q = data.rewards + (1 - data.dones) * args.gamma * (next_q - alpha * next_log_pi)
-        qf1_values, qf2_values = qf1(data.obs, data.actions), qf2(data.obs, data.actions)
-        qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
-        q_optimizer.zero_grad()
-        (qf1_loss + qf2_loss).backward()
-        q_optimizer.step()
-        sac_updates += 1
-        losses.update(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
-                      qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
-
-        if sac_updates % args.actor_update_freq == 0:
-            pi, log_pi, _ = actor.get_action(data.obs)
-            actor_loss = (alpha * log_pi - torch.min(qf1(data.obs, pi), qf2(data.obs, pi))).mean()
-            actor_optimizer.zero_grad()
-            actor_loss.backward()
-            actor_optimizer.step()
-            alpha_loss = (-log_alpha.exp() * (log_pi.detach() + target_entropy)).mean()
-            a_optimizer.zero_grad()
-            alpha_loss.backward()
-            a_optimizer.step()
-            alpha.copy_(log_alpha.detach().exp())
-            losses.update(actor_loss=actor_loss.detach(), alpha=alpha.clone(), alpha_loss=alpha_loss.detach())
-
-        if sac_updates % args.target_update_freq == 0:
-            with torch.no_grad():
-                online = list(qf1.parameters()) + list(qf2.parameters())
-                torch._foreach_lerp_(list(qf1_target.parameters()) + list(qf2_target.parameters()), online, args.tau)
-        return losses
-
-    def sparse_optimizers():
-        return actor_optimizer, q_optimizer
-
-    def save_checkpoint():
-        checkpoint = {
-            "args": vars(args),
-            "global_step": global_step + 1,
-            "actor": actor.state_dict(),
-            "qf1": qf1.state_dict(),
-            "qf2": qf2.state_dict(),
-            "log_alpha": log_alpha.detach().cpu(),
-            "masks": {name: mask.cpu() for opt in sparse_optimizers() for name, mask in opt.named_matrices(opt.masks)},
-            "obs_dim_real": obs_dim_real,
-            "obs_dim": obs_dim,
-            "act_dim": act_dim,
-        }
-        torch.save(checkpoint, f"runs/{run_name}/{args.exp_name}.cleanrl_model")
-
-    def stop_if_not_finite(values: dict):
-        """A non-finite value ends the run, exit code 1, with one line naming it; the checkpoint is written first."""
-        bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
-        if bad is not None:
-            save_checkpoint()
-            writer.close()
-            raise SystemExit(
-                f"{args.exp_name}: error: non-finite {bad} ({values[bad]}) at step {global_step}; "
-                f"checkpoint for debugging: runs/{run_name}/{args.exp_name}.cleanrl_model"
-            )
-
-    def stateful() -> dict:
-        """Every object the loop changes, by name (`state_of` and `load_state_` save and restore them)."""
-        return dict(
-            actor=actor, qf1=qf1, qf2=qf2, qf1_target=qf1_target, qf2_target=qf2_target, log_alpha=log_alpha, alpha=alpha,
-            actor_optimizer=actor_optimizer, q_optimizer=q_optimizer, a_optimizer=a_optimizer, rb=rb,
-        )
-
-    def save_state():
-        """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`."""
-        writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
-        save_atomically({
-            "args": vars(args), "global_step": global_step + 1, "elapsed": time.time() - start_time, "obs": obs,
-            "objects": {name: state_of(obj) for name, obj in stateful().items()}, "rng": rng_states(device),
-            "envs": [e.rng_state() for e in [env, *eval_envs]],
-            "loop": (sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions),
-        }, state_path)
+    loop = Loop()
+    # everything the loop changes, by name: `state.pt` saves and restores exactly these
+    saved = dict(agent=agent, rb=rb, loop=loop)
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
-    stop_signals = []  # SIGTERM / SIGUSR2 (SLURM, submitit: preemption, time limit): save the state at this step's end
-    for signum in (signal.SIGTERM, signal.SIGUSR2):
-        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
+    stop_signals = catch_stop_signals()
     progress = Progress(args.total_timesteps)
-    episode_return, episode_length, losses, last_eval = 0.0, 0, {}, {}
-    episode_start, episode_actions = None, []  # the episode's start (None: the seeded first reset) and its actions
-    start_step, elapsed = 0, 0.0
-    if resume is not None:
-        for name, obj in stateful().items():
-            load_state_(obj, resume["objects"][name])
-        sac_updates, episode_return, episode_length, losses, last_eval, episode_start, episode_actions = resume["loop"]
-        losses = {name: value.to(device) for name, value in losses.items()}
-    obs = ene.replay_episode(env, args.seed, episode_start, episode_actions)  # a resume: where the saved run was
-    if resume is not None:
-        set_rng_states(resume["rng"], device)
-        for e, state in zip([env, *eval_envs], resume["envs"]):
-            e.set_rng_state(state)
-        if not np.array_equal(obs, resume["obs"].cpu().numpy()):
-            print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
-                  "the run continues, not bitwise as uninterrupted", flush=True)
-        start_step, elapsed, progress.step = resume["global_step"], resume["elapsed"], resume["global_step"]
-        if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
-            for tag, value in last_eval.items():
-                writer.add_scalar(tag, value, start_step)
-        progress.eval_return = last_eval.get("eval/episodic_return")
-        print(f"resuming {state_path} at step {start_step}", flush=True)
-        del resume
+    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
+    del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
-    for global_step in range(start_step, args.total_timesteps):
-        progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
-        # ALGO LOGIC: put action logic here
-        if global_step < args.learning_starts:
-            action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
-        else:
-            with torch.no_grad():
-                action = actor.get_action(obs.unsqueeze(0))[0][0]
+    try:
+        for global_step in range(start_step, args.total_timesteps):
+            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
+            # ALGO LOGIC: put action logic here
+            if global_step < args.learning_starts:
+                action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
+            else:
+                with torch.no_grad():
+                    action = agent.actor.get_action(obs.unsqueeze(0))[0][0]
 
-        # TRY NOT TO MODIFY: execute the game and log data.
-        env_action = action.cpu().numpy()
-        stop_if_not_finite({"action": float(env_action.sum())})  # on the host already: no extra sync
-        next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
-        episode_actions.append(env_action)
-        next_obs = torch.as_tensor(next_obs, device=device)
-        rb.add(obs, action, next_obs, terminated, float(true_reward), float(true_reward))
-        episode_return, episode_length = episode_return + float(true_reward), episode_length + 1
-        obs = next_obs  # CRUCIAL step easy to overlook
-        if terminated or truncated:
-            writer.add_scalar("charts/episodic_return", episode_return, global_step)
-            writer.add_scalar("charts/episodic_length", episode_length, global_step)
-            episode_start, episode_actions = env.rng_state(), []
-            obs, _ = env.reset()
-            obs = torch.as_tensor(obs, device=device)
-            episode_return, episode_length = 0.0, 0
+            # TRY NOT TO MODIFY: execute the game and log data.
+            env_action = action.cpu().numpy()
+            check_finite({"action": float(env_action.sum())}, global_step)  # on the host already: no extra sync
+            next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
+            loop.episode_actions.append(env_action)
+            next_obs = torch.as_tensor(next_obs, device=device)
+            rb.add(obs, action, next_obs, terminated, float(true_reward), float(true_reward))
+            loop.episode_return, loop.episode_length = loop.episode_return + float(true_reward), loop.episode_length + 1
+            obs = next_obs  # CRUCIAL step easy to overlook
+            if terminated or truncated:
+                writer.add_scalar("charts/episodic_return", loop.episode_return, global_step)
+                writer.add_scalar("charts/episodic_length", loop.episode_length, global_step)
+                loop.episode_start, loop.episode_actions = env.rng_state(), []
+                obs, _ = env.reset()
+                obs = torch.as_tensor(obs, device=device)
+                loop.episode_return, loop.episode_length = 0.0, 0
 
-        # ALGO LOGIC: training.
-        if global_step >= args.learning_starts:
-            sac_update(rb.sample(args.batch_size))
+            # ALGO LOGIC: training.
+            if global_step >= args.learning_starts:
+                sac_update(agent, rb.sample(args.batch_size), loop, args)
 
-            if global_step % args.log_freq == 0:
-                logged = dict(zip([f"losses/{name}" for name in losses], torch.stack(list(losses.values())).tolist()))
-                for tag, value in logged.items():
-                    writer.add_scalar(tag, value, global_step)
-                stop_if_not_finite(logged)
+                if global_step % args.log_freq == 0:
+                    logged = dict(zip([f"losses/{name}" for name in loop.losses],
+                                      torch.stack(list(loop.losses.values())).tolist()))
+                    for tag, value in logged.items():
+                        writer.add_scalar(tag, value, global_step)
+                    check_finite(logged, global_step)
 
-        if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
-            eval_return = float(evaluate(actor, eval_envs, device).mean())
-            sps = int((global_step + 1) / (time.time() - start_time))
-            last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
-            for tag, value in last_eval.items():
-                writer.add_scalar(tag, value, global_step + 1)
-            for opt in sparse_optimizers():
-                for name, weight in opt.named_matrices(opt.layers):
-                    for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
-                        writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                    writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-            print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps}", flush=True)
-            progress.eval_return = eval_return
-            stop_if_not_finite({"eval/episodic_return": eval_return})
-            if args.save_model:
-                save_checkpoint()
+            if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
+                eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
+                sps = int((global_step + 1) / (time.time() - start_time))
+                loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
+                for tag, value in loop.last_eval.items():
+                    writer.add_scalar(tag, value, global_step + 1)
+                for opt in (agent.actor_optimizer, agent.q_optimizer):
+                    for name, weight in opt.named_matrices(opt.layers):
+                        for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
+                            writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
+                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps}", flush=True)
+                progress.eval_return = eval_return
+                check_finite({"eval/episodic_return": eval_return}, global_step)
+                if args.save_model:
+                    save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
 
-        last_step = global_step + 1 == args.total_timesteps
-        if stop_signals or (args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0):
-            save_state()
-            if stop_signals:
-                writer.close()
-                raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
-                                 f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
+            if stop_signals or state_due(global_step, args):
+                save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
+                           writer)
+                if stop_signals:
+                    writer.close()
+                    raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
+                                     f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
+    except NonFinite as e:  # the checkpoint is written first, for debugging
+        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+        writer.close()
+        raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
 
     if not args.keep_state and os.path.exists(state_path):
         os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
