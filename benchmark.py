@@ -30,7 +30,6 @@ Choices where the issue is silent:
   resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
-import functools
 import glob
 import os
 import re
@@ -344,7 +343,6 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
 NUMERICS_FLAGS = ("--compile", "--tf32", "--cuda-graph")
 
 
-@functools.lru_cache
 def device_of(command: tuple) -> str:
     """The device a run's script picks: the GPU torch sees (its model), unless the command says `--no-cuda`."""
     if "--no-cuda" in command:

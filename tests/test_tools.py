@@ -482,7 +482,9 @@ def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch
     # the results folder keeps the event file, the log and a `done` file naming the commit; no checkpoint
     kept = sorted(os.listdir(f"results/{run_id}"))
     assert len(kept) == 3 and kept[0] == "done" and kept[1].startswith("events.out.tfevents.") and kept[2] == "log.txt"
-    assert "git commit " in open(f"results/{run_id}/done").read() and "# git commit " in log
+    done = open(f"results/{run_id}/done").read()
+    assert "git commit " in done and "# git commit " in log
+    assert "\ndevice cpu\nnumerics default (eager, FP32)\n" in done, done  # the run's TINY flags say --no-cuda
     assert not os.path.exists("runs")  # the run worked in its own scratch folder under logs/
     os.remove(f"logs/{run_id}.done")  # only the kept results say it is finished now
     assert benchmark.main(args) == 0 and "nothing to run" in capsys.readouterr().out
