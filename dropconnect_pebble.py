@@ -179,8 +179,11 @@ class Args:
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
-    checkpoint_freq: int = 10_000
-    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
+    state_minutes: float = 10.0
+    """write the full training state `runs/{run_name}/state.pt` after the step that ends this many minutes of wall time
+    since the last one, and on SIGTERM / SIGUSR2 (a 1024-wide state is about 1 GB: keep writes rare)"""
+    checkpoint_freq: Optional[int] = None
+    """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
     teacher: Literal["simulated", "external"] = "simulated"
@@ -200,8 +203,10 @@ def validate_args(args: Args) -> None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
-    if args.checkpoint_freq < 1:
+    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
         raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
+    if not args.state_minutes > 0:
+        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
     if args.max_feedback < 1:
         raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
     if args.queries_per_round is None:
@@ -761,8 +766,8 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop, `preferences.npz`, the external
-# teacher and the diagnostics. The same block in every script (sac.py and anf_sac.py: a subset); a test checks it.
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop; in the PbRL scripts, the query
+# log, the label files and the reward diagnostics. The same in every script (sac.py, anf_sac.py: a subset); tested.
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
     """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
     second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
@@ -807,8 +812,9 @@ class Progress:
 
 
 # the training state `state.pt`, for exact resume (README: "Resuming a run")
+# the flags a resume may change, and no others: none of them touches training
 RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+                   "log_freq", "state_minutes", "checkpoint_freq", "keep_state")
 
 
 def open_run(args) -> tuple:
@@ -826,6 +832,9 @@ def open_run(args) -> tuple:
         state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+    if "loop" in state:  # the layout before issue 18 saved the loop's variables as tuples, not as `Loop`
+        raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
+                         "it with that version (git checkout 88b95d9)")
     saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
     changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
                if name not in RESUMABLE_FLAGS and saved[name] != value]
@@ -942,10 +951,14 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
     }, path)
 
 
-def state_due(global_step: int, args) -> bool:
-    """Whether `state.pt` is written after this step: every `checkpoint_freq` steps, and at the end with `keep_state`."""
-    last_step = global_step + 1 == args.total_timesteps
-    return args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0
+def state_due(global_step: int, args, last_state: float) -> bool:
+    """Whether `state.pt` is written after this step: `state_minutes` after the last one (`last_state`, from
+    `time.monotonic`), or every `checkpoint_freq` steps if set; at the last step only with `keep_state`."""
+    if global_step + 1 == args.total_timesteps:
+        return args.keep_state
+    if args.checkpoint_freq is not None:
+        return (global_step + 1) % args.checkpoint_freq == 0
+    return time.monotonic() - last_state >= 60 * args.state_minutes
 
 
 def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
@@ -1121,7 +1134,7 @@ if __name__ == "__main__":
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
 
-    # ALGO LOGIC: the agent, the reward ensemble, their storage
+    # ALGO LOGIC: the agent, and what it learns from
     agent = make_agent(obs_dim, act_dim, args, device)
     reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
     reward_model = reward_model.to(device)
@@ -1152,6 +1165,7 @@ if __name__ == "__main__":
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
+    last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
     pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
             run_folder)  # what a feedback round reads and changes
@@ -1225,19 +1239,17 @@ if __name__ == "__main__":
                 for e, weight in enumerate(reward_model.weights[0]):
                     for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                         writer.add_scalar(f"sparse/reward{e}/{tag}", value.item(), global_step + 1)
-                print(
-                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                    f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}",
-                    flush=True,
-                )
+                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:
                     save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
 
-            if stop_signals or state_due(global_step, args):
+            if stop_signals or state_due(global_step, args, last_state):
                 save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
                            writer)
+                last_state = time.monotonic()
                 if stop_signals:
                     writer.close()
                     raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
@@ -1247,9 +1259,9 @@ if __name__ == "__main__":
         writer.close()
         raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
 
-    if not args.keep_state and os.path.exists(state_path):
-        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
     env.close()
     for eval_env in eval_envs:
         eval_env.close()
     writer.close()
+    if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
+        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint

@@ -199,8 +199,11 @@ class Args:
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
-    checkpoint_freq: int = 10_000
-    """write the full training state `runs/{run_name}/state.pt` every this many steps, and on SIGTERM / SIGUSR2"""
+    state_minutes: float = 10.0
+    """write the full training state `runs/{run_name}/state.pt` after the step that ends this many minutes of wall time
+    since the last one, and on SIGTERM / SIGUSR2 (a 1024-wide state is about 1 GB: keep writes rare)"""
+    checkpoint_freq: Optional[int] = None
+    """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
     teacher: Literal["simulated", "external"] = "simulated"
@@ -216,8 +219,10 @@ def validate_args(args: Args) -> None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
-    if args.checkpoint_freq < 1:
+    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
         raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
+    if not args.state_minutes > 0:
+        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
     if args.max_feedback < 1:
         raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
     if args.queries_per_round is None:
@@ -709,11 +714,6 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     return metrics
 
 
-def sparse_optimizers(saved: dict) -> tuple:
-    """The sparse optimisers among a run's `saved` objects: the actor's, the critics', the reward members'."""
-    return saved["agent"].actor_optimizer, saved["agent"].q_optimizer, saved["reward_optimizer"]
-
-
 # ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
 @dataclass
 class Agent:
@@ -736,9 +736,9 @@ def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) ->
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
+    agent_sparsity = args.agent_sparsity if args.sparse_agent else 0.0
     q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
-                                  args.agent_sparsity if args.sparse_agent else 0.0, args.agent_drop_fraction,
-                                  args.agent_topology_period)
+                                  agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
     qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf1_target.load_state_dict(qf1.state_dict())
@@ -865,6 +865,11 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     return waited
 
 
+def sparse_optimizers(saved: dict) -> tuple:
+    """The sparse optimisers among a run's `saved` objects: the actor's, the critics', the reward members'."""
+    return saved["agent"].actor_optimizer, saved["agent"].q_optimizer, saved["reward_optimizer"]
+
+
 def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
     """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
     agent = saved["agent"]
@@ -877,8 +882,8 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop, `preferences.npz`, the external
-# teacher and the diagnostics. The same block in every script (sac.py and anf_sac.py: a subset); a test checks it.
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop; in the PbRL scripts, the query
+# log, the label files and the reward diagnostics. The same in every script (sac.py, anf_sac.py: a subset); tested.
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
     """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
     second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
@@ -923,8 +928,9 @@ class Progress:
 
 
 # the training state `state.pt`, for exact resume (README: "Resuming a run")
+# the flags a resume may change, and no others: none of them touches training
 RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-                   "log_freq", "checkpoint_freq", "keep_state")  # a resume may change these: none touches training
+                   "log_freq", "state_minutes", "checkpoint_freq", "keep_state")
 
 
 def open_run(args) -> tuple:
@@ -942,6 +948,9 @@ def open_run(args) -> tuple:
         state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+    if "loop" in state:  # the layout before issue 18 saved the loop's variables as tuples, not as `Loop`
+        raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
+                         "it with that version (git checkout 88b95d9)")
     saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
     changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
                if name not in RESUMABLE_FLAGS and saved[name] != value]
@@ -1058,10 +1067,14 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
     }, path)
 
 
-def state_due(global_step: int, args) -> bool:
-    """Whether `state.pt` is written after this step: every `checkpoint_freq` steps, and at the end with `keep_state`."""
-    last_step = global_step + 1 == args.total_timesteps
-    return args.keep_state if last_step else (global_step + 1) % args.checkpoint_freq == 0
+def state_due(global_step: int, args, last_state: float) -> bool:
+    """Whether `state.pt` is written after this step: `state_minutes` after the last one (`last_state`, from
+    `time.monotonic`), or every `checkpoint_freq` steps if set; at the last step only with `keep_state`."""
+    if global_step + 1 == args.total_timesteps:
+        return args.keep_state
+    if args.checkpoint_freq is not None:
+        return (global_step + 1) % args.checkpoint_freq == 0
+    return time.monotonic() - last_state >= 60 * args.state_minutes
 
 
 def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
@@ -1237,7 +1250,7 @@ if __name__ == "__main__":
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
 
-    # ALGO LOGIC: the agent, the reward ensemble, their storage
+    # ALGO LOGIC: the agent, and what it learns from
     agent = make_agent(obs_dim, act_dim, args, device)
     reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
     reward_model = reward_model.to(device)
@@ -1271,6 +1284,7 @@ if __name__ == "__main__":
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
+    last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
     pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
             run_folder)  # what a feedback round reads and changes
@@ -1346,19 +1360,17 @@ if __name__ == "__main__":
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
                         writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(
-                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                    f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}",
-                    flush=True,
-                )
+                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:
                     save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
 
-            if stop_signals or state_due(global_step, args):
+            if stop_signals or state_due(global_step, args, last_state):
                 save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
                            writer)
+                last_state = time.monotonic()
                 if stop_signals:
                     writer.close()
                     raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
@@ -1368,9 +1380,9 @@ if __name__ == "__main__":
         writer.close()
         raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
 
-    if not args.keep_state and os.path.exists(state_path):
-        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
     env.close()
     for eval_env in eval_envs:
         eval_env.close()
     writer.close()
+    if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
+        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint

@@ -366,7 +366,7 @@ def test_anf_sac_is_sac_plus_the_agent_half_of_the_r2n_patch():
         assert anf_blocks[name] == sac_blocks[name], f"{name} differs between sac.py and anf_sac.py"
     # the SPARSE LOGIC section is R2N's, byte for byte
     def section(source):
-        return source[source.index("# SPARSE LOGIC:") : source.index('if __name__ == "__main__":')]
+        return source[source.index("# SPARSE LOGIC:") : source.index("# ALGO LOGIC: the agent, and the steps of training")]
     assert section(anf_source) == section(r2n_source)
     # every added code line outside the patch comment, the flag block and its checks is a line of r2n_pebble.py
     r2n_lines = set(r2n_source.splitlines())

@@ -192,6 +192,7 @@ def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
         (["--seed", "2", "--noise", "0.5"], "a", "differs in --seed 1 (now 2), --noise 0.9 (now 0.5)"),
         ([], "a/b", "--run-name must be a folder name"),
         (["--checkpoint-freq", "0"], "c", "--checkpoint-freq must be >= 1"),
+        (["--state-minutes", "0"], "c", "--state-minutes must be > 0"),
     ]
     for extra, name, message in cases:
         process = start("sac.py", tmp_path, name, *extra)
@@ -213,6 +214,12 @@ def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
     process = start("sac.py", tmp_path, "a")
     stdout, stderr = process.communicate(timeout=300)
     assert process.returncode == 0 and "resuming runs/a/state.pt" in stdout, stderr
+    (tmp_path / "runs" / "old").mkdir()  # a state of the layout before issue 18: refused, with the version to use
+    old_state = {"args": state["args"], "global_step": 150, "loop": (0, 0.0, 0, {}, {}, None, [])}
+    torch.save(old_state, tmp_path / "runs" / "old" / "state.pt")
+    process = start("sac.py", tmp_path, "old")
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1 and "written by an older version" in stderr and len(stderr.strip().splitlines()) == 1
     (tmp_path / "runs" / "a").rename(tmp_path / "runs" / "a-done")
     process = start("sac.py", tmp_path, "a")  # a new run in the same name: killed right after its first state
     wait_for(tmp_path / "runs" / "a" / "state.pt", process)
@@ -222,3 +229,23 @@ def test_run_name_errors_are_one_line_and_lose_nothing(tmp_path):
     process = start("sac.py", tmp_path, "a")
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 1 and "cannot read runs/a/state.pt" in stderr
+
+
+def test_state_is_written_by_wall_time_or_every_n_steps(monkeypatch):
+    """`--state-minutes` after the last state (a clock, not the step count), `--checkpoint-freq` steps if given."""
+    sys.path.insert(0, ROOT)
+    import pebble
+
+    now = [1000.0]
+    monkeypatch.setattr(pebble.time, "monotonic", lambda: now[0])
+    args = pebble.Args(total_timesteps=100, state_minutes=1.0)
+    assert not pebble.state_due(10, args, last_state=1000.0)
+    now[0] = 1059.9
+    assert not pebble.state_due(11, args, last_state=1000.0)
+    now[0] = 1060.0
+    assert pebble.state_due(12, args, last_state=1000.0)
+    assert not pebble.state_due(99, args, last_state=0.0)  # the last step: only with --keep-state
+    args.keep_state = True
+    assert pebble.state_due(99, args, last_state=now[0])
+    args.checkpoint_freq = 25
+    assert pebble.state_due(24, args, last_state=now[0]) and not pebble.state_due(25, args, last_state=0.0)

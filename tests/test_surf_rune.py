@@ -109,7 +109,8 @@ def test_rune_critic_target_reward_includes_beta_sigma():
     assert torch.allclose(rune.rune_reward(rewards, stds, 0.04), torch.tensor([0.504, -0.188]))
     assert torch.equal(rune.rune_reward(rewards, stds, 0.0), rewards)  # pre-training: sac_update's default beta 0
     source = open(os.path.join(ROOT, "rune.py")).read()
-    assert "rewards = rune_reward(data.rewards, data.stds, beta)\n            target_q = rewards + " in source
+    assert "rewards = rune_reward(data.rewards, data.stds, beta)  # RUNE's bonus; beta 0 in pre-training\n" \
+           "        target_q = rewards + " in source
 
 
 # SURF
