@@ -34,6 +34,7 @@ Choices where the paper is silent:
 """
 import csv
 import glob
+import itertools
 import math
 import os
 import re
@@ -64,6 +65,9 @@ class Args:
     sparse-baselines tables, where the baseline R2N-PEBBLE is the one expected to be better)"""
     significance: float = 0.05
     """p-values below this get a `*`"""
+    primary_last: int = 3
+    """the primary metric of a run: the mean of its last this many evaluation returns (each itself a mean over
+    `eval_episodes` episodes); a study fixes it in its protocol"""
     include_unfinished: bool = False
     """also use runs whose last evaluation step is below `total_timesteps` (groups are then aligned on common steps)"""
     plots: bool = True
@@ -147,6 +151,10 @@ class Group:
     @property
     def auc(self) -> np.ndarray:
         return self.curves.sum(axis=1)
+
+    def values(self, metric: str, last: int) -> np.ndarray:
+        """Per seed: the mean of the `last` evaluations (`primary`), the final return or the AUC."""
+        return self.curves[:, -last:].mean(axis=1) if metric == "primary" else getattr(self, metric)
 
 
 # ---------------------------------------------------------------- reading
@@ -361,6 +369,39 @@ def welch_p(a, b, alternative: str = "greater") -> float:
         return float(stats.ttest_ind(a, b, equal_var=False, alternative=alternative).pvalue)
 
 
+def permutation_p(a, b, alternative: str = "greater", max_exact: int = 200_000, seed: int = 0) -> tuple:
+    """One-tailed permutation test of the difference in means, H1 as in `welch_p`: the share of the relabelings of
+    the pooled values whose difference is at least the observed one. Every relabeling when there are at most
+    `max_exact` (then the smallest possible p is 1 / C(n_a + n_b, n_a)), else `max_exact` random ones, counted with
+    the observed labelling ((k + 1) / (N + 1)). Returns (p, exact); nan for an empty arm."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if len(a) == 0 or len(b) == 0:
+        return float("nan"), True
+    pooled, n, sign = np.concatenate([a, b]), len(a), 1.0 if alternative == "greater" else -1.0
+    exact = math.comb(len(pooled), n) <= max_exact
+    if exact:
+        chosen = np.array(list(itertools.combinations(range(len(pooled)), n)))
+    else:
+        chosen = np.random.default_rng(seed).random((max_exact, len(pooled))).argsort(axis=1)[:, :n]
+    sums = pooled[chosen].sum(axis=1)
+    differences = sign * (sums / n - (pooled.sum() - sums) / (len(pooled) - n))
+    observed = sign * (a.mean() - b.mean())
+    count = int((differences >= observed - 1e-9 * max(1.0, abs(observed))).sum())  # ties count: floating sums
+    return (count / len(chosen) if exact else (count + 1) / (len(chosen) + 1)), exact
+
+
+def bootstrap_ci(a, b, resamples: int = 10_000, level: float = 0.95, seed: int = 0) -> tuple:
+    """Percentile bootstrap CI of mean(a) - mean(b), each arm resampled on its own; nan with fewer than 2 per arm."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if len(a) < 2 or len(b) < 2:
+        return float("nan"), float("nan")
+    rng = np.random.default_rng(seed)
+    differences = (a[rng.integers(0, len(a), (resamples, len(a)))].mean(axis=1)
+                   - b[rng.integers(0, len(b), (resamples, len(b)))].mean(axis=1))
+    low, high = np.percentile(differences, [50 * (1 - level), 50 * (1 + level)])
+    return float(low), float(high)
+
+
 def order_key(task, noise, budget, method, baseline):
     """Paper's task order, then noise and budget ascending; the baseline first, then the paper's method order."""
     task_rank = PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS)
@@ -390,17 +431,21 @@ def table_rows(groups, args: Args) -> list:
         row = dict(task=task, noise=noise, budget=budget, method=method, seeds=len(g.runs),
                    seed_list=" ".join(str(r.seed) for r in g.runs), last_step=int(g.steps[-1]),
                    eval_points=len(g.steps), baseline="", notes=list(g.notes))
-        row["final_mean"], row["final_se"] = mean_se(g.final)
-        row["auc_mean"], row["auc_se"] = mean_se(g.auc)
-        row["final_p"] = row["auc_p"] = float("nan")
+        for metric in METRICS:
+            row[f"{metric}_mean"], row[f"{metric}_se"] = mean_se(g.values(metric, args.primary_last))
+            row[f"{metric}_p"] = row[f"{metric}_perm_p"] = row[f"{metric}_diff"] = float("nan")
+            row[f"{metric}_ci"], row[f"{metric}_exact"] = (float("nan"), float("nan")), True
         base = by_key.get((task, noise, budget, base_name))
         if method != base_name:
             if base is None:
                 row["notes"].append(f"no baseline {base_name} for this task, noise and budget")
             else:
                 row["baseline"] = base_name
-                row["final_p"] = welch_p(g.final, base.final, args.alternative)
-                row["auc_p"] = welch_p(g.auc, base.auc, args.alternative)
+                for metric in METRICS:
+                    ours, theirs = g.values(metric, args.primary_last), base.values(metric, args.primary_last)
+                    row[f"{metric}_p"] = welch_p(ours, theirs, args.alternative)
+                    row[f"{metric}_perm_p"], row[f"{metric}_exact"] = permutation_p(ours, theirs, args.alternative)
+                    row[f"{metric}_diff"], row[f"{metric}_ci"] = ours.mean() - theirs.mean(), bootstrap_ci(ours, theirs)
                 differ = [k for k in COMPARED_KEYS
                           if g.runs[0].hparams.get(k) != base.runs[0].hparams.get(k)]
                 if differ:
@@ -431,7 +476,8 @@ def setting_label(noise, budget) -> str:
     return f"{'-' if budget is None else budget} / {'-' if noise is None else noise}"
 
 
-METRICS = {  # metric: (title, file name, definition)
+METRICS = {  # metric: (title, file name, definition); `primary` first: the studies' primary metric
+    "primary": ("Primary Metric", "primary", "the mean of the last {n} evaluation returns of each run (the primary metric)"),
     "final": ("Final Return", "final_return", "the last `eval/episodic_return` of each run"),
     "auc": ("AUC", "auc", "the sum of the evaluation returns of each run"),
 }
@@ -441,27 +487,33 @@ def table_lines(rows, metric: str, args: Args) -> list:
     """The Markdown of one table in the paper's layout: its definition, the table and its notes."""
     title = METRICS[metric][0]
     h1 = "method > baseline" if args.alternative == "greater" else "baseline > method"
+    sampled = any(not r[f"{metric}_exact"] for r in rows)
     lines = [
-        f"{title} = {METRICS[metric][2]}; mean ± standard error over seeds (sample std / sqrt(n)). P Value: one-tailed "
-        f"Welch's t-test against the baseline (`{args.baseline}`"
+        f"{title} = {METRICS[metric][2].format(n=args.primary_last)}; mean ± standard error over seeds (sample std / "
+        f"sqrt(n)). P Value: one-tailed Welch's t-test against the baseline (`{args.baseline}`"
         + (f"; {', '.join(args.baseline_for)}" if args.baseline_for else "")
-        + f"), H1: {h1}; * p < {args.significance}.", "",
-        f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds |",
-        "|---|---|---|---|---|---|",
+        + f"), H1: {h1}; * p < {args.significance}. Perm. p: the same H1 by a permutation test of the difference in "
+        + ("means (every relabeling, or 200 000 random ones where there are more: see the notes). " if sampled else
+           "means over every relabeling of the seeds. ")
+        + "Diff.: method mean minus baseline mean, with a 95% percentile bootstrap CI (10 000 resamples per arm).", "",
+        f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds | Perm. p | Diff. [95% CI] |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     previous = None
     for row in rows:
         setting = (row["task"], row["noise"], row["budget"])
         first = setting != previous
         previous = setting
-        p = fmt_p(row[f"{metric}_p"], args.significance)
+        p, perm_p = fmt_p(row[f"{metric}_p"], args.significance), fmt_p(row[f"{metric}_perm_p"], args.significance)
+        low, high = row[f"{metric}_ci"]
+        diff = "" if not math.isfinite(row[f"{metric}_diff"]) else f"{fmt(row[f'{metric}_diff'])} [{fmt(low)}, {fmt(high)}]"
         lines.append(
             f"| {row['task'] if first else ''} | {setting_label(row['noise'], row['budget']) if first else ''} "
             f"| {row['method']} | {fmt(row[f'{metric}_mean'])} ± {fmt(row[f'{metric}_se'])} | {p} "
-            f"| {row['seeds']} |"
+            f"| {row['seeds']} | {perm_p} | {diff} |"
         )
     notes = [f"- {r['task']} {setting_label(r['noise'], r['budget'])} {r['method']}: {n}" for r in rows
-             for n in r["notes"]]
+             for n in r["notes"] + ([] if r[f"{metric}_exact"] else ["permutation p from 200 000 random relabelings"])]
     return lines + (["", "Notes:", ""] + notes if notes else [])
 
 
@@ -528,8 +580,8 @@ def runs_lines(groups, rows) -> list:
 
 
 def write_tables(rows, groups, runs, args: Args):
-    """`final_return.md/.csv`, `auc.md/.csv` (the paper's layout), `runs.md` (every used run with its diagnostics) and
-    `runs.csv` (every run found and its status)."""
+    """`primary.md/.csv`, `final_return.md/.csv`, `auc.md/.csv` (the paper's layout), `runs.md` (every used run with
+    its diagnostics) and `runs.csv` (every run found and its status)."""
     os.makedirs(args.output_dir, exist_ok=True)
     for metric, (title, name, _) in METRICS.items():
         lines = [f"# {title}", ""] + table_lines(rows, metric, args) + [""] + skipped_lines(runs)
@@ -538,7 +590,8 @@ def write_tables(rows, groups, runs, args: Args):
         with open(os.path.join(args.output_dir, f"{name}.csv"), "w", newline="") as f:
             writer = csv.writer(f)
             writer.writerow(["task", "noise", "budget", "method", "seeds", "mean", "se", "p_value", "significant",
-                             "baseline", "eval_points", "last_step", "seed_list", "notes"])
+                             "baseline", "eval_points", "last_step", "seed_list", "notes", "perm_p", "perm_exact",
+                             "diff", "ci_low", "ci_high"])
             for row in rows:
                 p = row[f"{metric}_p"]
                 writer.writerow([
@@ -546,6 +599,9 @@ def write_tables(rows, groups, runs, args: Args):
                     row["seeds"], repr(row[f"{metric}_mean"]), repr(row[f"{metric}_se"]),
                     "" if not math.isfinite(p) else repr(p), int(math.isfinite(p) and p < args.significance),
                     row["baseline"], row["eval_points"], row["last_step"], row["seed_list"], "; ".join(row["notes"]),
+                    *("" if not math.isfinite(x) else repr(x) for x in (row[f"{metric}_perm_p"],)),
+                    int(row[f"{metric}_exact"]),
+                    *("" if not math.isfinite(x) else repr(float(x)) for x in (row[f"{metric}_diff"], *row[f"{metric}_ci"])),
                 ])
     with open(os.path.join(args.output_dir, "runs.md"), "w") as f:
         f.write("\n".join(["# Runs", "", RUNS_DEFINITION, ""] + runs_lines(groups, rows)) + "\n")
@@ -736,8 +792,8 @@ def main(args: Args) -> int:
         return 1
     rows = table_rows(groups, args)
     write_tables(rows, groups, runs, args)
-    written = [os.path.join(args.output_dir, f) for f in ("final_return.md", "final_return.csv", "auc.md", "auc.csv",
-                                                           "runs.md", "runs.csv")]
+    tables = [f"{name}.{kind}" for _, name, _ in METRICS.values() for kind in ("md", "csv")]
+    written = [os.path.join(args.output_dir, f) for f in tables + ["runs.md", "runs.csv"]]
     if args.plots:
         written += write_plots(groups, args)
     if args.readme:

@@ -4,6 +4,7 @@ the SLURM back-end through submitit (local executor; a fake `sbatch` for the job
 import csv
 import glob
 import importlib.util
+import math
 import os
 import re
 import shlex
@@ -663,3 +664,30 @@ def test_runs_table_diagnostics_wall_time_and_readme(tmp_path, monkeypatch):
     readme.write_text("no markers\n")
     with pytest.raises(SystemExit, match="--readme .* needs one line `<!-- analyze.py results: start -->`"):
         analyze.main(args)
+
+
+def test_permutation_test_and_bootstrap_ci_of_the_difference():
+    p, exact = analyze.permutation_p([4, 5, 6], [1, 2, 3])
+    assert exact and p == pytest.approx(1 / 20)  # the observed split is the most extreme of C(6, 3) = 20
+    assert analyze.permutation_p([1, 2, 3], [4, 5, 6])[0] == 1.0
+    assert analyze.permutation_p([1, 2, 3], [4, 5, 6], "less")[0] == pytest.approx(1 / 20)
+    assert analyze.permutation_p([1, 2, 3], [1, 2, 3])[0] == pytest.approx(14 / 20)  # 14 splits differ by >= 0
+    assert analyze.permutation_p([0.1, 0.1, 0.1], [0.1, 0.1, 0.1])[0] == 1.0  # floating ties count as extreme
+    a, b = np.arange(8.0) + 2.5, np.arange(8.0)  # C(16, 8) = 12 870 relabelings
+    exact_p, exact = analyze.permutation_p(a, b)
+    sampled_p, sampled_exact = analyze.permutation_p(a, b, max_exact=2000)
+    assert exact and not sampled_exact and 0 < exact_p < 0.2
+    assert sampled_p == pytest.approx(exact_p, abs=0.03) and sampled_p == analyze.permutation_p(a, b, max_exact=2000)[0]
+    rng = np.random.default_rng(1)
+    x, y = rng.normal(5.0, 1.0, 40), rng.normal(3.0, 1.0, 40)
+    low, high = analyze.bootstrap_ci(x, y)
+    assert low < x.mean() - y.mean() < high and low < 2.0 < high and high - low < 1.5
+    assert analyze.bootstrap_ci(x, y) == (low, high)  # a fixed seed: the same CI every time
+    assert all(math.isnan(v) for v in analyze.bootstrap_ci([1.0], [2.0, 3.0]))
+
+
+def test_primary_metric_is_the_mean_of_the_last_evaluations():
+    curves = np.array([[1.0, 2.0, 3.0, 4.0, 8.0], [0.0, 0.0, 1.0, 1.0, 1.0]])
+    group = analyze.Group(("cheetah-run", 0.9, 1000, "pebble"), runs=[], steps=np.arange(1, 6) * 1000, curves=curves)
+    assert np.array_equal(group.values("primary", 3), np.array([5.0, 1.0]))
+    assert np.array_equal(group.values("primary", 1), group.final) and np.array_equal(group.values("auc", 3), group.auc)
