@@ -4,11 +4,15 @@
 Reads every run under `--log-dirs` (searched recursively; a run is one `events.out.tfevents.*` file, the scripts write
 one per run), with all points (no TensorBoard subsampling), and groups runs by (task, noise, budget, method) read from
 the logged hyperparameter table: task = `env_id`, method = `exp_name`, budget = `max_feedback` (absent for SAC
-oracles). For every group it writes, as Markdown and CSV, the final return (last `eval/episodic_return`) and the AUC
-(sum of all evaluation returns), mean ± standard error over seeds (SE = sample std (ddof 1) / sqrt(n)), the number of
-seeds and the one-tailed Welch's t-test p-value against a baseline of the same task, noise and budget
-(`scipy.stats.ttest_ind(method, baseline, equal_var=False, alternative="greater")`; `*` where p < 0.05), in the
-layout of the paper's appendix tables. It also writes learning curves per task (mean ± SE, one colour per method) and
+oracles). For every group it writes, as Markdown and CSV, three tables in the layout of the paper's appendix tables:
+the primary metric (the mean of each run's last `--primary-last` (3) evaluation returns), the final return (last
+`eval/episodic_return`) and the AUC (sum of all evaluation returns); each as mean ± standard error over seeds (SE =
+sample std (ddof 1) / sqrt(n)), the number of seeds and, against a baseline of the same task, noise and budget, the
+one-tailed Welch's t-test p-value (`scipy.stats.ttest_ind(method, baseline, equal_var=False, alternative="greater")`;
+`*` where p < 0.05), the one-tailed permutation-test p-value of the difference in means (exact over every relabeling
+of the seeds up to `PERMUTATIONS` of them, else that many random ones) and the difference in means with its
+percentile bootstrap 95% CI (`BOOTSTRAP_RESAMPLES` resamples of each arm; both with a fixed seed, so the tables
+regenerate identically). It also writes learning curves per task (mean ± SE, one colour per method) and
 connectivity plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds).
 
 Choices where the paper is silent:
@@ -54,7 +58,8 @@ class Args:
     log_dirs: tuple[str, ...] = ("runs",)
     """folders searched recursively for TensorBoard runs (`events.out.tfevents.*` files, one per run)"""
     output_dir: str = "analysis"
-    """where the tables (`final_return.md/.csv`, `auc.md/.csv`, `runs.csv`) and plots (`curves/`, `connectivity/`) go"""
+    """where the tables (`primary.md/.csv`, `final_return.md/.csv`, `auc.md/.csv`, `runs.md/.csv`) and plots
+    (`curves/`, `connectivity/`) go"""
     baseline: str = "pebble"
     """the method (exp_name) each method of the same task, noise and budget is tested against"""
     baseline_for: tuple[str, ...] = ()
@@ -91,6 +96,8 @@ ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None}
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
 EVAL_TAG = "eval/episodic_return"
 SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
+PERMUTATIONS = 200_000  # the permutation test is exact up to this many relabelings, else samples this many
+BOOTSTRAP_RESAMPLES = 10_000  # per arm, for the CI of the difference in means
 DIAGNOSTIC_TAGS = ("pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy")  # last value, in runs.md
 README_MARKERS = ("<!-- analyze.py results: start -->", "<!-- analyze.py results: end -->")
 PAPER_TASKS = ["cartpole-swingup", "walker-walk", "cheetah-run", "quadruped-walk", "humanoid-stand"]
@@ -369,7 +376,7 @@ def welch_p(a, b, alternative: str = "greater") -> float:
         return float(stats.ttest_ind(a, b, equal_var=False, alternative=alternative).pvalue)
 
 
-def permutation_p(a, b, alternative: str = "greater", max_exact: int = 200_000, seed: int = 0) -> tuple:
+def permutation_p(a, b, alternative: str = "greater", max_exact: int = PERMUTATIONS, seed: int = 0) -> tuple:
     """One-tailed permutation test of the difference in means, H1 as in `welch_p`: the share of the relabelings of
     the pooled values whose difference is at least the observed one. Every relabeling when there are at most
     `max_exact` (then the smallest possible p is 1 / C(n_a + n_b, n_a)), else `max_exact` random ones, counted with
@@ -390,7 +397,7 @@ def permutation_p(a, b, alternative: str = "greater", max_exact: int = 200_000, 
     return (count / len(chosen) if exact else (count + 1) / (len(chosen) + 1)), exact
 
 
-def bootstrap_ci(a, b, resamples: int = 10_000, level: float = 0.95, seed: int = 0) -> tuple:
+def bootstrap_ci(a, b, resamples: int = BOOTSTRAP_RESAMPLES, level: float = 0.95, seed: int = 0) -> tuple:
     """Percentile bootstrap CI of mean(a) - mean(b), each arm resampled on its own; nan with fewer than 2 per arm."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     if len(a) < 2 or len(b) < 2:
@@ -421,7 +428,7 @@ def parse_baselines(args: Args) -> dict:
 
 
 def table_rows(groups, args: Args) -> list:
-    """One row per group: the statistics of both tables, against the group's baseline."""
+    """One row per group: the statistics of every table (`METRICS`), against the group's baseline."""
     overrides = parse_baselines(args)
     by_key = {g.key: g for g in groups}
     rows = []
@@ -472,6 +479,11 @@ def fmt_p(p: float, significance: float) -> str:
     return "" if not math.isfinite(p) else f"{p:.3f}" + ("*" if p < significance else "")
 
 
+def spaced(n: int) -> str:
+    """An integer with its thousands spaced: 200 000."""
+    return f"{n:,}".replace(",", " ")
+
+
 def setting_label(noise, budget) -> str:
     return f"{'-' if budget is None else budget} / {'-' if noise is None else noise}"
 
@@ -493,9 +505,10 @@ def table_lines(rows, metric: str, args: Args) -> list:
         f"sqrt(n)). P Value: one-tailed Welch's t-test against the baseline (`{args.baseline}`"
         + (f"; {', '.join(args.baseline_for)}" if args.baseline_for else "")
         + f"), H1: {h1}; * p < {args.significance}. Perm. p: the same H1 by a permutation test of the difference in "
-        + ("means (every relabeling, or 200 000 random ones where there are more: see the notes). " if sampled else
-           "means over every relabeling of the seeds. ")
-        + "Diff.: method mean minus baseline mean, with a 95% percentile bootstrap CI (10 000 resamples per arm).", "",
+        + (f"means (every relabeling, or {spaced(PERMUTATIONS)} random ones where there are more: see the notes). "
+           if sampled else "means over every relabeling of the seeds. ")
+        + f"Diff.: method mean minus baseline mean, with a 95% percentile bootstrap CI ({spaced(BOOTSTRAP_RESAMPLES)} "
+        + "resamples per arm).", "",
         f"| Task | Feedback / Noise | Method | {title} | P Value | Seeds | Perm. p | Diff. [95% CI] |",
         "|---|---|---|---|---|---|---|---|",
     ]
@@ -512,8 +525,9 @@ def table_lines(rows, metric: str, args: Args) -> list:
             f"| {row['method']} | {fmt(row[f'{metric}_mean'])} ± {fmt(row[f'{metric}_se'])} | {p} "
             f"| {row['seeds']} | {perm_p} | {diff} |"
         )
+    sampled_note = f"permutation p from {spaced(PERMUTATIONS)} random relabelings"
     notes = [f"- {r['task']} {setting_label(r['noise'], r['budget'])} {r['method']}: {n}" for r in rows
-             for n in r["notes"] + ([] if r[f"{metric}_exact"] else ["permutation p from 200 000 random relabelings"])]
+             for n in r["notes"] + ([] if r[f"{metric}_exact"] else [sampled_note])]
     return lines + (["", "Notes:", ""] + notes if notes else [])
 
 
@@ -633,7 +647,8 @@ RUNS_DEFINITION = (
 
 
 def readme_block(rows, groups, runs, args: Args, pngs: list) -> list:
-    """The lines `--readme` puts between its markers: every run, both tables, the skipped runs and the curves."""
+    """The lines `--readme` puts between its markers: every run, the tables (the primary metric first), the skipped
+    runs and the curves."""
     folder = os.path.dirname(os.path.abspath(args.readme))
     curves = [p for p in pngs if os.path.basename(os.path.dirname(p)) == "curves"]
     lines = [f"Written by `analyze.py` from {', '.join(f'`{d}`' for d in args.log_dirs)}. {RUNS_DEFINITION}", ""]
@@ -773,6 +788,8 @@ def write_plots(groups, args: Args) -> list:
 
 
 def main(args: Args) -> int:
+    if args.primary_last < 1:
+        raise SystemExit(f"analyze: error: --primary-last must be at least 1, got {args.primary_last}")
     if args.readme:
         check_readme(args.readme)
     missing = [d for d in args.log_dirs if not os.path.isdir(d)]
@@ -799,7 +816,7 @@ def main(args: Args) -> int:
     if args.readme:
         update_readme(args.readme, readme_block(rows, groups, runs, args, written))
         written.append(args.readme)
-    with open(os.path.join(args.output_dir, "final_return.md")) as f:
+    with open(os.path.join(args.output_dir, f"{METRICS['primary'][1]}.md")) as f:  # the primary metric's table
         print(f.read().split("\n\nNotes:")[0].split("\n\nSkipped runs")[0])
     print("wrote " + ", ".join(written))
     return 0

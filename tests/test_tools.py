@@ -35,6 +35,16 @@ def welch(a, b, alternative="greater"):
     from scipy import stats
 
     return stats.ttest_ind(a, b, equal_var=False, alternative=alternative).pvalue
+
+
+def exact_permutation(a, b, alternative="greater"):
+    """The exact permutation p-value of the difference in means, by scipy (every relabeling)."""
+    from scipy import stats
+
+    return stats.permutation_test((a, b), lambda x, y, axis: x.mean(axis=axis) - y.mean(axis=axis), vectorized=True,
+                                  permutation_type="independent", alternative=alternative, n_resamples=np.inf).pvalue
+
+
 BASE_HPARAMS = dict(exp_name=None, seed=None, torch_deterministic=True, cuda=True, track=False, wandb_entity=None,
                     threads=None, env_id=None, noise=None, noise_type="gaussian", noise_histograms=None,
                     total_timesteps=5000, batch_size=1024, max_feedback=None, reward_lr=0.003, eval_freq=1000)
@@ -159,12 +169,47 @@ def test_markdown_has_the_paper_layout(synthetic):
     base, _ = expected_stats(data, "cheetah-run", "pebble", [1, 2, 3])
     p = welch(finals, base)
     lines = text.splitlines()
-    i = lines.index(f"| cheetah-run | 1000 / 0.9 | pebble | {base.mean():.2f} ± {se(base):.2f} |  | 3 |")
-    assert lines[i + 1] == f"|  |  | r2n_pebble | {finals.mean():.2f} ± {se(finals):.2f} | {p:.3f}* | 4 |"
+    perm_p, diff = exact_permutation(finals, base), finals.mean() - base.mean()
+    low, high = analyze.bootstrap_ci(finals, base)
+    i = lines.index(f"| cheetah-run | 1000 / 0.9 | pebble | {base.mean():.2f} ± {se(base):.2f} |  | 3 |  |  |")
+    assert lines[i + 1] == (f"|  |  | r2n_pebble | {finals.mean():.2f} ± {se(finals):.2f} | {p:.3f}* | 4 "
+                            f"| {perm_p:.3f}* | {diff:.2f} [{low:.2f}, {high:.2f}] |")
+    assert perm_p == pytest.approx(1 / 35)  # the observed split is the most extreme of C(7, 3) = 35
     walker = [line for line in lines if line.startswith("| walker-walk | 4000 / 0.9 | pebble | ")]
     assert len(walker) == 1 and lines[lines.index(walker[0]) + 1].startswith("|  |  | r2n_pebble | ")
     assert lines.index(walker[0]) < i  # the paper's task order: walker-walk before cheetah-run
-    assert "| AUC | P Value | Seeds |" in (out / "auc.md").read_text()
+    assert "| AUC | P Value | Seeds | Perm. p | Diff. [95% CI] |" in (out / "auc.md").read_text()
+    assert "| Primary Metric | P Value | Seeds | Perm. p | Diff. [95% CI] |" in (out / "primary.md").read_text()
+
+
+@needs_analysis
+def test_primary_metric_permutation_p_and_ci_columns(synthetic, tmp_path):
+    """primary.csv: the mean of each run's last 3 evaluations (the last 1 with --primary-last 1: the final return);
+    every table's perm_p is scipy's exact permutation p, diff the difference in means, ci_* the bootstrap CI."""
+    data, out, pair = synthetic["data"], synthetic["out"], ("pebble", "r2n_pebble")  # (baseline, method)
+    for task, (_, _, methods) in synthetic["layout"].items():
+        (base_final, base_auc), (finals, aucs) = (expected_stats(data, task, m, methods[m][0]) for m in pair)
+        base_last3, last3 = (np.array([data[(task, m, s)][-3:].mean() for s in methods[m][0]]) for m in pair)
+        for name, base, x in (("primary", base_last3, last3), ("final_return", base_final, finals),
+                              ("auc", base_auc, aucs)):
+            rows = {r["method"]: r for r in read_csv(out / f"{name}.csv") if r["task"] == task}
+            assert float(rows["pebble"]["mean"]) == pytest.approx(base.mean(), rel=1e-12)
+            assert float(rows["r2n_pebble"]["mean"]) == pytest.approx(x.mean(), rel=1e-12)
+            assert float(rows["r2n_pebble"]["se"]) == pytest.approx(se(x), rel=1e-12)
+            assert rows["pebble"]["perm_p"] == rows["pebble"]["diff"] == rows["pebble"]["ci_low"] == ""
+            row = rows["r2n_pebble"]
+            assert float(row["p_value"]) == pytest.approx(welch(x, base), rel=1e-9)
+            assert float(row["perm_p"]) == pytest.approx(exact_permutation(x, base), rel=1e-12)
+            assert row["perm_exact"] == "1" and float(row["diff"]) == pytest.approx(x.mean() - base.mean(), rel=1e-12)
+            low, high = float(row["ci_low"]), float(row["ci_high"])
+            assert (low, high) == analyze.bootstrap_ci(x, base) and low < float(row["diff"]) < high
+    assert analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path), primary_last=1,
+                                     plots=False)) == 0
+    means = [[r["mean"] for r in read_csv(folder / name)] for folder, name in ((tmp_path, "primary.csv"),
+                                                                               (out, "final_return.csv"))]
+    assert means[0] == means[1]
+    with pytest.raises(SystemExit, match="--primary-last must be at least 1"):
+        analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path), primary_last=0))
 
 
 @needs_analysis
@@ -659,6 +704,8 @@ def test_runs_table_diagnostics_wall_time_and_readme(tmp_path, monkeypatch):
     block, after = block.split("<!-- analyze.py results: end -->")
     assert before == "# Title\n\nbefore\n" and after == "\nafter\n" and "old" not in block
     assert "| `run1` | 1 |" in block and "| cartpole-swingup | 400 / 0.9 | r2n_pebble | 30.00 ± 0.00 |" in block
+    titles = [block.index(f"| {title} | P Value |") for title in ("Primary Metric", "Final Return", "AUC")]
+    assert titles == sorted(titles) and "(the primary metric)" in block  # the primary metric first
     assert "![learning curves: cartpole-swingup](out/curves/cartpole-swingup.png)" in block
     assert analyze.main(args) == 0 and readme.read_text() == written  # regenerates identically
     readme.write_text("no markers\n")
@@ -673,6 +720,13 @@ def test_permutation_test_and_bootstrap_ci_of_the_difference():
     assert analyze.permutation_p([1, 2, 3], [4, 5, 6], "less")[0] == pytest.approx(1 / 20)
     assert analyze.permutation_p([1, 2, 3], [1, 2, 3])[0] == pytest.approx(14 / 20)  # 14 splits differ by >= 0
     assert analyze.permutation_p([0.1, 0.1, 0.1], [0.1, 0.1, 0.1])[0] == 1.0  # floating ties count as extreme
+    for n_a, n_b, relabelings in ((3, 3, 20), (4, 3, 35), (2, 5, 21)):
+        rng = np.random.default_rng(n_a * 10 + n_b)
+        x, y = rng.normal(size=n_a), rng.normal(size=n_b)
+        p, exact = analyze.permutation_p(x, y)
+        assert exact and p * relabelings == pytest.approx(round(p * relabelings))
+        assert p == pytest.approx(exact_permutation(x, y)) and p + analyze.permutation_p(y, x)[0] == pytest.approx(
+            1 + 1 / relabelings)  # the two tails share only the observed split (no ties in normal draws)
     a, b = np.arange(8.0) + 2.5, np.arange(8.0)  # C(16, 8) = 12 870 relabelings
     exact_p, exact = analyze.permutation_p(a, b)
     sampled_p, sampled_exact = analyze.permutation_p(a, b, max_exact=2000)
@@ -682,6 +736,10 @@ def test_permutation_test_and_bootstrap_ci_of_the_difference():
     x, y = rng.normal(5.0, 1.0, 40), rng.normal(3.0, 1.0, 40)
     low, high = analyze.bootstrap_ci(x, y)
     assert low < x.mean() - y.mean() < high and low < 2.0 < high and high - low < 1.5
+    # near normal here: the 2.5 and 97.5 percentiles of the bootstrap differences lie 1.96 bootstrap SDs either side
+    bootstrap_sd = math.sqrt(x.var() / len(x) + y.var() / len(y))
+    assert [(x.mean() - y.mean() - low) / bootstrap_sd, (high - x.mean() + y.mean()) / bootstrap_sd] == pytest.approx(
+        [1.96, 1.96], abs=0.08)
     assert analyze.bootstrap_ci(x, y) == (low, high)  # a fixed seed: the same CI every time
     assert all(math.isnan(v) for v in analyze.bootstrap_ci([1.0], [2.0, 3.0]))
 
