@@ -94,8 +94,15 @@ CPU_STUDY = tuple(
 # cpu-study's main setting with 8 new seeds per arm (results/early-stop/PROTOCOL.md, fixed before its first run).
 EARLY_STOP = (Preset(CPU_STUDY_MAIN, ("pebble_no_early_stop", "r2n_pebble_no_early_stop"), tuple(range(9, 17)),
                      CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK),)
+# Issue 21's powered study (results/cheetah-study/PROTOCOL.md, fixed after its pilot): cheetah-run 0.9/1000 at a CPU
+# scale, 8 seeds per PbRL arm (80% power for half the paper's gain), 3 per oracle.
+CHEETAH_FLAGS = ("--total-timesteps", "250000", "--hidden-dim", "256", "--batch-size", "128", "--eval-freq", "10000")
+CHEETAH_STUDY = tuple(
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"))
+    for methods, seeds in ((("pebble", "r2n_pebble"), tuple(range(1, 9))), (("sac", "anf_sac"), (1, 2, 3)))
+)
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
-RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop"}
+RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -125,18 +132,20 @@ PRESETS = {
     "cpu-study": CPU_STUDY,
     # the confirmation of the early-stop lead: cartpole-swingup 0.9/400 at the cpu-study's scale, reward early stop off
     "early-stop": EARLY_STOP,
+    # the powered study: cheetah-run 0.9/1000, 250k steps, 256-wide; 8 + 8 PbRL runs and 3 + 3 oracle runs
+    "cheetah-study": CHEETAH_STUDY,
 }
 
 
 @dataclass
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
-                             "early-stop"]] = None
+                             "early-stop", "cheetah-study"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
     `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
-    confirmation (`results/early-stop`)"""
+    confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
     `r2n_pebble_agent_only`); replaces the preset's"""
