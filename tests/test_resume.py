@@ -95,14 +95,29 @@ def wait_for(path, process):
         time.sleep(0.02)
 
 
+def training_time_after_first_state(script, cwd, run_name):
+    """Run to the end; the seconds from its first `state.pt` to the deletion of the last one, that is, the stretch
+    in which a kill leaves a state to resume (the teardown after the deletion is not in it)."""
+    process = start(script, cwd, run_name)
+    state = cwd / "runs" / run_name / "state.pt"
+    wait_for(state, process)
+    first = time.monotonic()
+    while os.path.exists(state) and process.poll() is None:
+        time.sleep(0.01)
+    seconds = time.monotonic() - first
+    _, stderr = process.communicate(timeout=600)
+    assert process.returncode == 0, stderr[-3000:]
+    return seconds
+
+
 @pytest.mark.parametrize("script", list(ARGS))
 def test_killed_at_a_random_moment_resumes_exactly(script, tmp_path):
-    run(script, tmp_path, "reference")
+    window = training_time_after_first_state(script, tmp_path, "reference")
     process = start(script, tmp_path, "killed")
     wait_for(tmp_path / "runs" / "killed" / "state.pt", process)
-    delay = random.uniform(0.0, 2.0)
+    delay = random.uniform(0.0, 0.7 * window)  # inside the stretch: a kill after the state's deletion has none to resume
     time.sleep(delay)
-    assert process.poll() is None, f"the run ended within {delay:.2f} s of its first state: lengthen it"
+    assert os.path.exists(tmp_path / "runs" / "killed" / "state.pt"), f"the run finished within {delay:.2f} s: lengthen it"
     process.send_signal(signal.SIGKILL)
     process.communicate()
     stdout, _ = run(script, tmp_path, "killed")  # the same command again
