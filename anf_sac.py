@@ -529,16 +529,17 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
-    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
-    only, so it adds no host sync to the training loop."""
+    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
+    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
+    run's training time (`seconds`, waits for a teacher excluded), and it reads host values only, so it adds no host
+    sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
         self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
-    def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.monotonic()
+    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
+        now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
         sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
@@ -725,7 +726,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     if not np.array_equal(obs, resume["obs"].cpu().numpy()):
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
-    start_step = progress.step = resume["global_step"]
+    start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
     if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
@@ -786,7 +787,8 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
+            phase = "random" if global_step < args.learning_starts else "SAC"
+            progress.update(global_step, phase, time.time() - start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
