@@ -185,6 +185,11 @@ class Args:
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """if toggled, cuda will be used when available"""
+    compile: bool = False
+    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
+    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    tf32: bool = False
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -219,6 +224,8 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
     if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
@@ -668,6 +675,7 @@ class SparseOptimizer:
     def zero_grad(self):
         self.optimizer.zero_grad()
 
+    @torch.compiler.disable  # under --compile: its Python counters and RigL's host reads stay eager (a graph break)
     def step(self):
         if self.sparsity == 0:
             return self.optimizer.step()
@@ -1317,6 +1325,9 @@ if __name__ == "__main__":
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
+    if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
+        critic_update, actor_update, target_update = map(torch.compile, (critic_update, actor_update, target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
