@@ -164,3 +164,148 @@ def test_label_app_port_in_use(tmp_path):
         result = subprocess.run([sys.executable, LABEL_APP, str(run), "--port", str(port)], capture_output=True,
                                 text=True, timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert result.returncode == 1 and result.stderr == f"label_app: error: --port {port}: address already in use\n"
+
+
+def open_page(driver, address):
+    from selenium.webdriver.common.by import By
+
+    driver.get(f"http://{address}/")
+    return lambda element="progress": driver.find_element(By.ID, element).text
+
+
+def answer_round(driver, keys, submit=True):
+    """Answer the queries shown, one key each once the page takes answers, then submit with Enter."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    body = driver.find_element(By.TAG_NAME, "body")
+    for key in keys:
+        WebDriverWait(driver, 60).until(answers_enabled)
+        body.send_keys(key)
+    WebDriverWait(driver, 30).until(lambda d: d.find_element(By.ID, "submit").is_displayed())
+    if submit:
+        body.send_keys(Keys.ENTER)
+
+
+@needs_chromium
+def test_label_app_two_tabs_answering_a_round_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    with serve(run) as address, contextlib.closing(chrome()) as first, contextlib.closing(chrome()) as second:
+        texts = [open_page(driver, address) for driver in (first, second)]
+        for driver, text in zip((first, second), texts):
+            WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
+        answer_round(first, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], submit=False)
+        answer_round(second, [Keys.ARROW_RIGHT, "="], submit=False)
+        answer_round(first, [])  # the first tab submits first and wins
+        WebDriverWait(first, 30).until(lambda d: texts[0]("message") == "round 0 saved (labels/0.json)")
+        answer_round(second, [])
+        WebDriverWait(second, 30).until(lambda d: texts[1]("message") == (
+            "round 0 was already answered, perhaps in another tab: your answers for it were not used"))
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]
+        for driver, text in zip((first, second), texts):  # both move on
+            WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+
+
+@needs_chromium
+def test_label_app_malformed_labels_file_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    (run / "labels").mkdir()
+    (run / "labels" / "0.json").write_bytes(b"[1, 2")  # by hand, unfinished
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("labels/0.json is not valid: not JSON: "))
+        assert text("notices").endswith("Submitting round 0's answers from this page replaces it (the old file is kept "
+                                        "as labels/0.json.rejected-...).")
+        answer_round(driver, ["s", Keys.ARROW_LEFT])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == ["skip", 0]
+        rejected = [name for name in os.listdir(run / "labels") if name != "0.json"]
+        assert len(rejected) == 1 and rejected[0].startswith("0.json.rejected-")
+        assert abs(int(rejected[0].split("-")[1]) - time.time()) < 60
+        assert (run / "labels" / rejected[0]).read_bytes() == b"[1, 2"
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == "")
+
+
+@needs_chromium
+def test_label_app_clips_before_answers_and_undo_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    # every clip takes 2 s more: the page is seen before its clips have loaded
+    with serve(run, R2N_LABEL_APP_CLIP_DELAY="2") as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        body = driver.find_element(By.TAG_NAME, "body")
+        clips = driver.find_element(By.ID, "clips")
+        loaded = "return document.getElementById('left').complete && document.getElementById('right').complete"
+
+        def query(i, fresh=True):
+            """Query i of 3 is shown; a fresh one (its clips never loaded) at first without clips, its answers not
+            taken; then with both clips."""
+            WebDriverWait(driver, 30).until(lambda d: text() == f"round 0: query {i} of 3")
+            if fresh:
+                assert not answers_enabled(driver) and not clips.is_displayed()
+                body.send_keys(Keys.ARROW_LEFT)  # not taken
+            WebDriverWait(driver, 60).until(answers_enabled)
+            assert text() == f"round 0: query {i} of 3" and clips.is_displayed() and driver.execute_script(loaded)
+
+        query(1)
+        driver.find_element(By.ID, "answer-left").click()
+        query(2)  # its clips were fetched ahead, but are still on their way
+        body.send_keys("=")
+        query(3)
+        body.send_keys("s")
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        assert text("submit") == "\u23ce submit round 0" and not clips.is_displayed()
+        driver.find_element(By.ID, "undo").click()  # the last answer too can be undone
+        query(3, fresh=False)
+        body.send_keys(Keys.ARROW_RIGHT)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        body.send_keys(Keys.BACKSPACE, Keys.BACKSPACE)  # back to query 2
+        query(2, fresh=False)
+        body.send_keys(Keys.ARROW_RIGHT)
+        query(3, fresh=False)
+        body.send_keys(Keys.ARROW_LEFT)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        assert not (run / "labels" / "0.json").exists()  # nothing is written before the round is submitted
+        body.send_keys(Keys.ENTER)
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0]
+
+
+@needs_chromium
+def test_label_app_run_states_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3, 3), teacher={"phase": "training", "round": None, "queries": None, "asked": 6,
+                                             "labelled": 5, "step": 1000})
+    (run / "labels").mkdir()
+    (run / "labels" / "0.json").write_text('[1, 0, "skip"]')
+    (run / "labels" / "1.json").write_text("[1, 0, 0]")
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting; the run is training (step 1000 of 1500)")
+        assert text("run") == "cartpole-swingup \u00b7 run ext \u00b7 5 labels so far (budget 10)" and text("notices") == ""
+        gone = subprocess.Popen(["true"])
+        gone.wait()
+        write_teacher(run, phase="training", pid=gone.pid, round=None, step=1000, updated=time.time() - 42)
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("the run is not responding (last heard 4"))
+        assert text("notices").endswith(" s ago): running the same command again resumes it")
+        message = "stopped by SIGTERM while waiting for labels/2.json: run the same command again to resume"
+        write_teacher(run, phase="stopped", pid=gone.pid, message=message)
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == f"the run has stopped: {message}")
+        write_teacher(run, phase="finished", pid=gone.pid, round=None, labelled=5, step=1500)
+        WebDriverWait(driver, 30).until(lambda d: text() == "the run has finished: 5 labels in 2 rounds")
+        assert text("notices") == ""
+        driver.save_screenshot(str(tmp_path / "label_app_finished.png"))
+        if os.environ.get("R2N_SCREENSHOT_FINISHED"):  # to refresh the README's picture
+            shutil.copy(tmp_path / "label_app_finished.png", os.environ["R2N_SCREENSHOT_FINISHED"])
