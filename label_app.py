@@ -361,12 +361,14 @@ function render() {
 }
 async function refresh() {
   try {
-    state = await (await fetch("/api/state")).json();
+    const reply = await fetch("/api/state");
+    if (!reply.ok) throw new Error(await reply.text());
+    state = await reply.json();
     render();
     if (round === null && !submitting && state.round !== null) { round = state.round; n = state.n; answers = []; show(); }
   } catch (error) {
     $("notices").replaceChildren(Object.assign(document.createElement("p"),
-      {textContent: `the app does not answer (${error.message}): is label_app.py running?`}));
+      {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
   }
   timer = setTimeout(refresh, 2000);
 }
@@ -396,16 +398,18 @@ def make_handler(run_dir: str, clips: Clips):
         def answer(self, route):
             """Answer with `route`'s reply; a refused request gets its code and one line, never a traceback."""
             try:
-                return self.reply(*route(urlsplit(self.path).path))
+                reply = route(urlsplit(self.path).path)
             except Refused as e:
-                code, sentence = e.code, str(e)
+                reply = e.code, str(e).encode()
             except ValueError as e:
-                code, sentence = 400, str(e)
+                reply = 400, str(e).encode()
             except Exception as e:  # a bug, or a renderer that fails: one line here and on the page; the app serves on
-                code, sentence = 500, f"{type(e).__name__}: {e}".splitlines()[0]
+                sentence = f"{type(e).__name__}: {e}".splitlines()[0]
                 print(f"label_app: {self.command} {self.path}: {sentence}", file=sys.stderr, flush=True)
-            self.close_connection = True  # the body of a refused request may be left unread
-            self.reply(code, sentence.encode())
+                reply = 500, sentence.encode()
+            if reply[0] >= 400:
+                self.close_connection = True  # the body of a refused request may be left unread
+            self.reply(*reply)
 
         def do_GET(self):
             self.answer(self.get)
