@@ -131,8 +131,9 @@ def is_valid(path: str, n: int) -> bool:
 
 
 def keeps_existing(path: str, n: int) -> bool:
-    """Whether the labels file at `path` is the round's answer (valid, so final). A malformed one is moved aside to
-    `{path}.rejected-{unix time}`, whole and atomically, and False; so is a file that has gone meanwhile."""
+    """True if the labels file at `path` is the round's answer (valid, hence final). Else False, and `path` is free
+    for the caller's answers: a malformed file has been moved aside to `{path}.rejected-{unix time}` (whole and
+    atomically: nothing a person wrote is deleted), or the file had gone meanwhile."""
     if is_valid(path, n):
         return True
     stamp = int(time.time())
@@ -217,8 +218,10 @@ def silent_for(teacher: dict) -> Optional[float]:
 
 
 def state(run_dir: str) -> dict:
-    """What the page shows (README: "Labelling by hand"): the pending round and the run's status, from the files."""
-    teacher, pending, n, malformed, answered, labels, task = read_teacher(run_dir), None, None, None, 0, 0, None
+    """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
+    `teacher.json` when it has one."""
+    teacher = read_teacher(run_dir)
+    pending, n, malformed, answered, labels, task = None, None, None, 0, 0, None
     for r in rounds(run_dir):
         queries = load_queries(run_dir, r)
         task = queries["env_id"]
@@ -227,15 +230,21 @@ def state(run_dir: str) -> dict:
         except (FileNotFoundError, ValueError) as e:
             if pending is None:
                 pending, n = r, len(queries["physics"])
-                malformed = None if isinstance(e, FileNotFoundError) else str(e)
+                malformed = str(e) if isinstance(e, ValueError) else None
             continue
         answered += 1
         labels += sum(a != "skip" for a in answers)
-    return {"run": teacher["run"] if teacher else os.path.basename(os.path.abspath(run_dir)),
-            "task": teacher["task"] if teacher else task,
-            "round": pending, "n": n, "malformed": malformed, "rounds_answered": answered,
-            "labels": teacher["labelled"] if teacher else labels,
-            "teacher": teacher, "silent_for": silent_for(teacher) if teacher else None}
+    return {
+        "run": teacher["run"] if teacher else os.path.basename(os.path.abspath(run_dir)),
+        "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
+        "round": pending,  # the lowest round with queries and no valid labels file, or None
+        "n": n,  # its number of queries
+        "malformed": malformed,  # why its labels file, if it has one, is not valid
+        "rounds_answered": answered,  # rounds with a valid labels file
+        "labels": teacher["labelled"] if teacher else labels,  # answers other than "skip": the run's count, else the files'
+        "teacher": teacher,  # teacher.json as the run wrote it, or None
+        "silent_for": silent_for(teacher) if teacher else None,  # seconds since the run's last news, if not responding
+    }
 
 
 class Clips:

@@ -99,6 +99,25 @@ def test_label_app_writes_a_round_once(tmp_path):
     assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
 
 
+def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    path = str(tmp_path / "0.json")
+    for text in ("[1, 2", "[1, 0"):  # two malformed files within a second: both kept
+        (tmp_path / "0.json").write_text(text)
+        assert not label_app.keeps_existing(path, 2) and not os.path.exists(path)
+    kept = sorted(name for name in os.listdir(tmp_path))
+    assert len(kept) == 2 and kept[0].startswith("0.json.rejected-") and kept[1] == kept[0] + "-2"
+    assert [(tmp_path / name).read_text() for name in kept] == ["[1, 2", "[1, 0"]
+    # a valid file that replaced the malformed one between the check and the move is moved back: it is the answer
+    (tmp_path / "0.json").write_text("[1, 0]")
+    checks = iter([False])  # the check before the move saw the malformed file
+    monkeypatch.setattr(label_app, "is_valid", lambda p, n: next(checks, True))
+    assert label_app.keeps_existing(path, 2)
+    assert (tmp_path / "0.json").read_text() == "[1, 0]" and sorted(os.listdir(tmp_path)) == ["0.json", *kept]
+
+
 def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
     run = make_run(tmp_path, (3, 3, 3))
     (run / "labels").mkdir()
