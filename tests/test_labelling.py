@@ -1,5 +1,6 @@
 """Real preferences (README: "Labelling by hand"): `preferences.npz`, the external-teacher file protocol with a
 scripted teacher, `--preferences` reuse, and the labelling page in a real headless Chromium."""
+import hashlib
 import json
 import os
 import shutil
@@ -7,6 +8,8 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 
 import numpy as np
 import pytest
@@ -205,6 +208,17 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
         assert json.loads((run / "labels" / "1.json").read_text()) == [0] * 5
         assert scalars(str(run))["pbrl/labeled_feedback"] == [4, 9]
+        # the labels on disk are the training data, and the run's record of them; the page says the run finished
+        files = [(run / "labels" / f"{r}.json").read_bytes() for r in (0, 1)]
+        with np.load(run / "preferences.npz") as data:
+            expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)]
+            np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
+            assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files for _ in range(5)]
+        WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(request, timeout=30)
+        assert refused.value.code == 409 and (run / "labels" / "1.json").read_bytes() == files[1]
     finally:
         driver.quit()
         app.terminate()  # not SIGINT: a background job (a CI runner) ignores it, and so would the app
