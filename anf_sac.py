@@ -355,7 +355,7 @@ class SparseOptimizer:
     def zero_grad(self):
         self.optimizer.zero_grad()
 
-    @torch.compiler.disable  # under --compile: its Python counters and RigL's host reads stay eager (a graph break)
+    @torch.compiler.disable  # eager under --compile (a graph break) in every sparse script: RigL's counters would recompile
     def step(self):
         if self.sparsity == 0:
             return self.optimizer.step()
@@ -539,7 +539,7 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for a teacher excluded), and it reads host values only, so it adds no host
+    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
     sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
@@ -684,6 +684,10 @@ def catch_stop_signals() -> list:
     return stop_signals
 
 
+class Stopped(Exception):
+    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+
+
 class NonFinite(Exception):
     """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
 
@@ -798,8 +802,7 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            phase = "random" if global_step < args.learning_starts else "SAC"
-            progress.update(global_step, phase, time.time() - start_time)
+            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC", time.time() - start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
@@ -857,13 +860,14 @@ if __name__ == "__main__":
                            writer)
                 last_state = time.monotonic()
                 if stop_signals:
-                    writer.close()
-                    raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
-                                     f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
-    except NonFinite as e:  # the checkpoint is written first, for debugging
-        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; state saved in "
+                                  f"{state_path}: run the same command with --run-name {run_name} to resume")
+    except (Stopped, NonFinite) as e:
+        if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
+            save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+            e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         writer.close()
-        raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
+        raise SystemExit(f"{args.exp_name}: {e}")
 
     env.close()
     for eval_env in eval_envs:

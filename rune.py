@@ -803,7 +803,7 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for a teacher excluded), and it reads host values only, so it adds no host
+    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
     sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):

@@ -675,7 +675,7 @@ class SparseOptimizer:
     def zero_grad(self):
         self.optimizer.zero_grad()
 
-    @torch.compiler.disable  # under --compile: its Python counters and RigL's host reads stay eager (a graph break)
+    @torch.compiler.disable  # eager under --compile (a graph break) in every sparse script: RigL's counters would recompile
     def step(self):
         if self.sparsity == 0:
             return self.optimizer.step()
@@ -920,7 +920,7 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for a teacher excluded), and it reads host values only, so it adds no host
+    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
     sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
