@@ -91,7 +91,9 @@ RUN_SPECIFIC_KEYS = frozenset({
 })
 # Flags the scripts gained after runs were recorded, with the value those runs had in effect (only the simulated teacher
 # existed before `--teacher`), so that old and new runs of one configuration stay one group.
-ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None}
+ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None, "compile": False, "tf32": False}
+# Flags that change a run's numerics (issue 19): runs that differ in one are never averaged together or compared.
+NUMERICS_KEYS = ("compile", "tf32")
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
 EVAL_TAG = "eval/episodic_return"
@@ -320,11 +322,10 @@ def make_groups(runs) -> list:
         for r in members:
             config = dict(config_of(r))
             if config != chosen_dict:
-                diffs = [
-                    f"{k}={config.get(k, '<absent>')} (group: {chosen_dict.get(k, '<absent>')})"
-                    for k in sorted(set(config) | set(chosen_dict)) if config.get(k) != chosen_dict.get(k)
-                ]
-                r.skip("mismatched settings: " + ", ".join(diffs))
+                keys = [k for k in sorted(set(config) | set(chosen_dict)) if config.get(k) != chosen_dict.get(k)]
+                diffs = [f"{k}={config.get(k, '<absent>')} (group: {chosen_dict.get(k, '<absent>')})" for k in keys]
+                numerics = " (numerics flags: never averaged together)" if set(keys) & set(NUMERICS_KEYS) else ""
+                r.skip("mismatched settings: " + ", ".join(diffs) + numerics)
         members = [r for r in members if r.status == "used"]
         by_seed = defaultdict(list)
         for r in members:
@@ -443,9 +444,14 @@ def table_rows(groups, args: Args) -> list:
             row[f"{metric}_p"] = row[f"{metric}_perm_p"] = row[f"{metric}_diff"] = float("nan")
             row[f"{metric}_ci"], row[f"{metric}_exact"] = (float("nan"), float("nan")), True
         base = by_key.get((task, noise, budget, base_name))
+        numerics = base and [f"{k}={g.runs[0].hparams.get(k, False)} vs {base.runs[0].hparams.get(k, False)}"
+                             for k in NUMERICS_KEYS if g.runs[0].hparams.get(k, False) != base.runs[0].hparams.get(k, False)]
         if method != base_name:
             if base is None:
                 row["notes"].append(f"no baseline {base_name} for this task, noise and budget")
+            elif numerics:
+                row["notes"].append(f"not compared with {base_name}: the numerics flags differ ({', '.join(numerics)}); "
+                                    "runs with different numerics are never compared")
             else:
                 row["baseline"] = base_name
                 for metric in METRICS:

@@ -108,6 +108,11 @@ class Args:
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """if toggled, cuda will be used when available"""
+    compile: bool = False
+    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
+    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    tf32: bool = False
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -146,6 +151,8 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
     if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
@@ -348,6 +355,7 @@ class SparseOptimizer:
     def zero_grad(self):
         self.optimizer.zero_grad()
 
+    @torch.compiler.disable  # eager under --compile (a graph break) in every sparse script: RigL's counters would recompile
     def step(self):
         if self.sparsity == 0:
             return self.optimizer.step()
@@ -529,16 +537,17 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
-    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
-    only, so it adds no host sync to the training loop."""
+    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
+    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
+    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
+    sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
         self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
-    def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.monotonic()
+    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
+        now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
         sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
@@ -675,6 +684,10 @@ def catch_stop_signals() -> list:
     return stop_signals
 
 
+class Stopped(Exception):
+    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+
+
 class NonFinite(Exception):
     """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
 
@@ -725,7 +738,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     if not np.array_equal(obs, resume["obs"].cpu().numpy()):
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
-    start_step = progress.step = resume["global_step"]
+    start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
     if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
@@ -761,6 +774,9 @@ if __name__ == "__main__":
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
+    if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
+        critic_update, actor_update, target_update = map(torch.compile, (critic_update, actor_update, target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
@@ -786,7 +802,7 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC")
+            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC", time.time() - start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
@@ -844,13 +860,14 @@ if __name__ == "__main__":
                            writer)
                 last_state = time.monotonic()
                 if stop_signals:
-                    writer.close()
-                    raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
-                                     f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
-    except NonFinite as e:  # the checkpoint is written first, for debugging
-        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; state saved in "
+                                  f"{state_path}: run the same command with --run-name {run_name} to resume")
+    except (Stopped, NonFinite) as e:
+        if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
+            save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+            e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         writer.close()
-        raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
+        raise SystemExit(f"{args.exp_name}: {e}")
 
     env.close()
     for eval_env in eval_envs:

@@ -101,8 +101,14 @@ CHEETAH_STUDY = tuple(
     Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"))
     for methods, seeds in ((("pebble", "r2n_pebble"), tuple(range(1, 9))), (("sac", "anf_sac"), (1, 2, 3)))
 )
+# Issue 21's imitating noise (results/imitate/PROTOCOL.md, exploratory): the cpu-study's main setting with noise features
+# drawn from the histograms of a noise-free SAC policy's observations (made by results/imitate/run.sh first).
+IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY_FLAGS + (
+    "--noise-type", "imitate", "--noise-histograms", os.path.join(ROOT, "results/imitate/cartpole-swingup_histograms.npz"),
+), CPU_STUDY_FEEDBACK),)  # an absolute path: each run works in its own scratch folder
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
-RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study"}
+RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study",
+           "imitate": "results/imitate"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -134,18 +140,21 @@ PRESETS = {
     "early-stop": EARLY_STOP,
     # the powered study: cheetah-run 0.9/1000, 250k steps, 256-wide; 8 + 8 PbRL runs and 3 + 3 oracle runs
     "cheetah-study": CHEETAH_STUDY,
+    # imitating noise, exploratory: cartpole-swingup 0.9/400 at the cpu-study's scale, 3 + 3 runs
+    "imitate": IMITATE,
 }
 
 
 @dataclass
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
-                             "early-stop", "cheetah-study"]] = None
+                             "early-stop", "cheetah-study", "imitate"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
     `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
-    confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`)"""
+    confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`); `imitate`,
+    imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
     `r2n_pebble_agent_only`); replaces the preset's"""

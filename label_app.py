@@ -5,23 +5,49 @@
 
 It shows the pending round's queries one at a time: the two segments as clips, side by side, rendered with MuJoCo's
 offscreen renderer from the physics states stored with each query. The answer is left, right, equal or skip, by
-mouse or keyboard (arrow keys, `=`/space, `s`); when the round is done the page writes `labels/{round}.json`, which
-the run is waiting for, and waits for the next round. Standard library only (plus the project's imageio and
-dm_control): the training scripts need no web dependency.
+mouse or keyboard (arrow keys, `=`/space, `s`); the answer buttons and keys wait until both clips of the query have
+loaded (the next query's clips are fetched ahead). Backspace or "undo" takes back the last answer; after the last
+query "submit round r" (or Enter) writes `labels/{round}.json`, which the run is waiting for, and the page waits for
+the next round. Standard library only (plus the project's numpy, imageio and dm_control): the training scripts need
+no web dependency.
+
+Labels you can trust:
+- A round's labels file is written once. The app writes a temporary file, fsyncs it, then hard-links it to
+  `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
+  each 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another tab,
+  another app, a script) gets HTTP 409 and changes nothing.
+- A malformed labels file leaves its round pending; the page shows why it is not valid, and submitting the round's
+  answers moves it aside to `labels/{round}.json.rejected-{unix time}` (nothing a person wrote is deleted).
+- The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training,
+  finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine whose
+  process has gone), else from the run's files alone.
+- A bad request gets its HTTP code and one line (404, 400, 413 above 64 KiB), never a traceback, and the app serves
+  on; a port in use is one line on stderr and exit code 1.
+
+The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file. The app reads
+`teacher.json` (keys task, run, pid, host, phase, round, queries, asked, labelled, budget, step, total_steps, message,
+updated; written by the run) but never writes it.
 
 It binds to localhost. On a remote machine, forward the port: `ssh -L 8000:localhost:8000 host`, then open
 http://localhost:8000 on your own. Without a display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa`
-(software); the app sets `egl` when neither `MUJOCO_GL` nor `DISPLAY` is set.
+(software); the app sets `egl` when neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only,
+`R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so that a test sees the page before the clips have loaded.
 """
+import errno
 import glob
 import io
 import json
 import os
 import re
+import socket
 import sys
+import tempfile
 import threading
+import time
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Optional
+from urllib.parse import urlsplit
 
 import numpy as np
 import tyro
@@ -31,7 +57,9 @@ if "MUJOCO_GL" not in os.environ and "DISPLAY" not in os.environ:
 
 import ene  # noqa: E402
 
-ANSWERS = {"left": 0, "right": 1, "equal": 0.5, "skip": "skip"}  # label = P[the second (right) segment is preferred]
+MAX_BODY = 64 * 1024  # bytes of a POST: a round's answers take a few KiB at most
+SILENT_SECONDS = 15  # a waiting run rewrites teacher.json every ~2 s: this long without news, it is not responding
+CLIP_DELAY = float(os.environ.get("R2N_LABEL_APP_CLIP_DELAY", "0"))  # tests only: see the module docstring
 
 
 @dataclass
@@ -46,11 +74,177 @@ class Args:
     """frames per second of the clips"""
 
 
-def pending_round(run_dir: str):
-    """The first round whose queries have no labels file yet, or None."""
-    rounds = sorted(int(m.group(1)) for path in glob.glob(os.path.join(run_dir, "queries", "*.npz"))
-                    if (m := re.fullmatch(r"(\d+)\.npz", os.path.basename(path))))
-    return next((r for r in rounds if not os.path.exists(os.path.join(run_dir, "labels", f"{r}.json"))), None)
+class Refused(Exception):
+    """A request answered with an HTTP error `code` and one sentence."""
+
+    def __init__(self, code: int, sentence: str):
+        super().__init__(sentence)
+        self.code = code
+
+
+def rounds(run_dir: str) -> list:
+    """The rounds with queries, in order."""
+    return sorted(int(m.group(1)) for path in glob.glob(os.path.join(run_dir, "queries", "*.npz"))
+                  if (m := re.fullmatch(r"(\d+)\.npz", os.path.basename(path))))
+
+
+def load_queries(run_dir: str, round_index: int) -> dict:
+    """The task and the physics states (n, 2, T, D) of a round's queries; Refused(404) if the round has none."""
+    try:
+        with np.load(os.path.join(run_dir, "queries", f"{round_index}.npz")) as data:
+            return {"env_id": str(data["env_id"]), "physics": data["physics"]}
+    except FileNotFoundError:
+        raise Refused(404, f"round {round_index} has no queries (queries/{round_index}.npz)") from None
+
+
+def labels_path(run_dir: str, round_index: int) -> str:
+    return os.path.join(run_dir, "labels", f"{round_index}.json")
+
+
+def parse_answers(text: bytes, n: int) -> list:
+    """The answers in `text` if they are valid labels for a round of n queries (the rule the run reads by: a JSON
+    list of n answers, each 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+    try:
+        answers = json.loads(text)
+    except RecursionError:  # json gives up on deep nesting this way
+        raise ValueError("not JSON: nested too deeply") from None
+    except ValueError as e:  # JSONDecodeError, UnicodeDecodeError
+        raise ValueError(f"not JSON: {e}") from None
+    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+        raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
+    return answers
+
+
+def read_labels(path: str, n: int) -> list:
+    """The answers of the labels file `path` for a round of n queries: ValueError if it is not valid,
+    FileNotFoundError if there is none."""
+    with open(path, "rb") as f:
+        return parse_answers(f.read(), n)
+
+
+def is_valid(path: str, n: int) -> bool:
+    try:
+        read_labels(path, n)
+    except (FileNotFoundError, ValueError):
+        return False
+    return True
+
+
+def keeps_existing(path: str, n: int) -> bool:
+    """True if the labels file at `path` is the round's answer (valid, hence final). Else False, and `path` is free
+    for the caller's answers: a malformed file has been moved aside to `{path}.rejected-{unix time}` (whole and
+    atomically: nothing a person wrote is deleted), or the file had gone meanwhile."""
+    if is_valid(path, n):
+        return True
+    stamp = int(time.time())
+    rejected, k = f"{path}.rejected-{stamp}", 1
+    while os.path.exists(rejected):  # never rename onto an earlier rejected file: that would delete it
+        k += 1
+        rejected = f"{path}.rejected-{stamp}-{k}"
+    try:
+        os.rename(path, rejected)
+    except FileNotFoundError:
+        return False
+    if not is_valid(rejected, n):
+        return False
+    # between the check and the move, someone replaced the malformed file with a valid one: that is the answer
+    try:
+        os.link(rejected, path)
+        os.remove(rejected)
+    except FileExistsError:  # and yet another file came meanwhile: keep both, never delete
+        pass
+    return True
+
+
+WRITING = threading.Lock()  # the app's own writers, one at a time; the hard link guards against everyone else
+
+
+def write_labels(run_dir: str, round_index: int, body: bytes):
+    """Write the answers in `body` as the round's labels file, once: Refused(409) if a valid one exists, ValueError
+    if the answers are not valid. A reader (the run) sees no file or the whole file, never a part."""
+    n = len(load_queries(run_dir, round_index)["physics"])
+    answers = parse_answers(body, n)
+    path = labels_path(run_dir, round_index)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with WRITING:
+        fd, tmp = tempfile.mkstemp(prefix=f".{round_index}.json.", suffix=".tmp", dir=os.path.dirname(path))
+        try:
+            with os.fdopen(fd, "w") as f:
+                json.dump(answers, f)
+                f.flush()
+                os.fsync(f.fileno())  # on disk before it is visible under its name
+            while True:
+                try:
+                    os.link(tmp, path)  # unlike a rename, fails if the file exists
+                    return
+                except FileExistsError:
+                    if keeps_existing(path, n):
+                        raise Refused(409, f"round {round_index} is already answered (labels/{round_index}.json); "
+                                           "a round's labels are written once and never change") from None
+        finally:
+            os.remove(tmp)
+
+
+def read_teacher(run_dir: str) -> Optional[dict]:
+    """The run's status file `teacher.json`, or None: an older run, or one that has not asked yet, has none."""
+    try:
+        with open(os.path.join(run_dir, "teacher.json")) as f:
+            teacher = json.load(f)
+    except (OSError, ValueError):  # written atomically by the run, so unreadable only if it is not the run's
+        return None
+    return teacher if isinstance(teacher, dict) else None
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only checks that the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # it exists, under another user
+        pass
+    return True
+
+
+def silent_for(teacher: dict) -> Optional[float]:
+    """Seconds since the run last wrote `teacher.json` if it is not responding, else None: a waiting run rewrites it
+    every ~2 s, and a waiting or training run of this machine has a live process."""
+    age = time.time() - teacher["updated"]
+    if teacher["phase"] == "waiting" and age > SILENT_SECONDS:
+        return age
+    if teacher["phase"] in ("waiting", "training") and teacher["host"] == socket.gethostname() and not alive(
+            teacher["pid"]):
+        return age
+    return None
+
+
+def state(run_dir: str) -> dict:
+    """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
+    `teacher.json` when it has one."""
+    teacher = read_teacher(run_dir)
+    pending, n, malformed, answered, labels, task = None, None, None, 0, 0, None
+    for r in rounds(run_dir):
+        queries = load_queries(run_dir, r)
+        task = queries["env_id"]
+        try:
+            answers = read_labels(labels_path(run_dir, r), len(queries["physics"]))
+        except (FileNotFoundError, ValueError) as e:
+            if pending is None:
+                pending, n = r, len(queries["physics"])
+                malformed = str(e) if isinstance(e, ValueError) else None
+            continue
+        answered += 1
+        labels += sum(a != "skip" for a in answers)
+    return {
+        "run": teacher["run"] if teacher else os.path.basename(os.path.abspath(run_dir)),
+        "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
+        "round": pending,  # the lowest round with queries and no valid labels file, or None
+        "n": n,  # its number of queries
+        "malformed": malformed,  # why its labels file, if it has one, is not valid
+        "rounds_answered": answered,  # rounds with a valid labels file
+        "labels": teacher["labelled"] if teacher else labels,  # answers other than "skip": the run's count, else the files'
+        "teacher": teacher,  # teacher.json as the run wrote it, or None
+        "silent_for": silent_for(teacher) if teacher else None,  # seconds since the run's last news, if not responding
+    }
 
 
 class Clips:
@@ -59,17 +253,15 @@ class Clips:
     def __init__(self, run_dir: str, fps: int):
         self.run_dir, self.fps, self.cache, self.lock = run_dir, fps, {}, threading.Lock()
 
-    def queries(self, round_index: int) -> dict:
-        with np.load(os.path.join(self.run_dir, "queries", f"{round_index}.npz")) as data:
-            return {"env_id": str(data["env_id"]), "physics": data["physics"]}
-
     def gif(self, round_index: int, query: int, side: int) -> bytes:
         import imageio.v3 as iio
 
         key = (round_index, query, side)
         with self.lock:  # one MuJoCo renderer at a time
             if key not in self.cache:
-                data = self.queries(round_index)
+                data = load_queries(self.run_dir, round_index)
+                if query >= len(data["physics"]):
+                    raise Refused(404, f"round {round_index} has {len(data['physics'])} queries, not {query + 1}")
                 frames = ene.render_states(data["env_id"], data["physics"][query, side])
                 buffer = io.BytesIO()
                 iio.imwrite(buffer, frames, extension=".gif", duration=1000 / self.fps, loop=0)
@@ -77,110 +269,186 @@ class Clips:
             return self.cache[key]
 
 
-def write_labels(run_dir: str, round_index: int, answers: list):
-    """Check the answers against the round's queries and write `labels/{round}.json` atomically."""
-    with np.load(os.path.join(run_dir, "queries", f"{round_index}.npz")) as data:
-        n = len(data["physics"])
-    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
-        raise ValueError(f'expected {n} answers, each 0, 1, 0.5 or "skip"')
-    path = os.path.join(run_dir, "labels", f"{round_index}.json")
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(f"{path}.tmp", "w") as f:
-        json.dump(answers, f)
-    os.replace(f"{path}.tmp", path)
-
-
 PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>R2N: label preferences</title>
 <style>
+ [hidden] { display: none !important; }  /* else .clips' display: flex would show hidden clips */
  body { font-family: sans-serif; margin: 2em; background: #fafafa; }
  .clips { display: flex; gap: 2em; } .clip { text-align: center; }
  img { width: 320px; height: 240px; border: 3px solid #ccc; background: #000; }
  button { font-size: 1.1em; margin: 0.5em 0.3em; padding: 0.4em 1em; }
- #progress { font-weight: bold; }
+ #progress { font-weight: bold; } #run { color: #555; }
+ #notices p, #message:not(:empty) { background: #fff3cd; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; }
 </style></head>
 <body>
 <h2>Which segment is better?</h2>
+<p id="run"></p>
+<div id="notices"></div>
 <p id="progress">loading...</p>
+<p id="message"></p>
 <div class="clips" id="clips" hidden>
- <div class="clip"><img id="left"><div>left (first segment)</div></div>
- <div class="clip"><img id="right"><div>right (second segment)</div></div>
+ <div class="clip"><img id="left" alt="left clip"><div>left (first segment)</div></div>
+ <div class="clip"><img id="right" alt="right clip"><div>right (second segment)</div></div>
 </div>
-<div id="buttons" hidden>
- <button id="answer-left">&larr; left is better</button>
- <button id="answer-equal">= equal</button>
- <button id="answer-right">right is better &rarr;</button>
- <button id="answer-skip">s: skip</button>
+<div id="answers" hidden>
+ <button id="answer-left" disabled>&larr; left is better</button>
+ <button id="answer-equal" disabled>= equal</button>
+ <button id="answer-right" disabled>right is better &rarr;</button>
+ <button id="answer-skip" disabled>s: skip</button>
 </div>
+<button id="submit" hidden></button>
+<button id="undo" hidden>&#9003; undo</button>
 <script>
-let round = null, n = 0, i = 0, answers = [];
-const progress = document.getElementById("progress");
-function show() {
-  progress.textContent = `round ${round}: query ${i + 1} of ${n}`;
-  document.getElementById("left").src = `/clip/${round}/${i}/0.gif`;
-  document.getElementById("right").src = `/clip/${round}/${i}/1.gif`;
-  document.getElementById("clips").hidden = false; document.getElementById("buttons").hidden = false;
+const $ = (id) => document.getElementById(id);
+let state = null, timer = null;  // the app's last /api/state, and the next refresh
+let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
+let shown = 0, ready = false, ahead = [];  // queries shown (a late image of an earlier one is ignored), whether
+                                           // both clips of this one have loaded, the next one's clips
+const clip = (r, i, side) => `/clip/${r}/${i}/${side}.gif`;
+
+function show() {  // the current query (one per answer so far), or the submit step after the last
+  const i = answers.length, token = ++shown;
+  ready = false;
+  for (const button of document.querySelectorAll("#answers button")) button.disabled = true;
+  $("clips").hidden = true; $("answers").hidden = i === n; $("undo").hidden = i === 0;
+  $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
+  if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
+  $("progress").textContent = `round ${round}: query ${i + 1} of ${n}`;
+  $("left").src = clip(round, i, 0); $("right").src = clip(round, i, 1);
+  Promise.all([$("left").decode(), $("right").decode()]).then(() => {
+    if (token !== shown) return;
+    ready = true; $("clips").hidden = false;
+    for (const button of document.querySelectorAll("#answers button")) button.disabled = false;
+    if (i + 1 < n) ahead = [0, 1].map((side) => Object.assign(new Image(), {src: clip(round, i + 1, side)}));
+  }, () => {
+    if (token === shown) $("message").textContent = `the clips of query ${i + 1} did not load: the app's output says why`;
+  });
 }
-async function poll() {
-  const state = await (await fetch("/api/state")).json();
-  if (state.round === null) {
-    progress.textContent = "no round is waiting for labels; this page checks every 2 s";
-    document.getElementById("clips").hidden = true; document.getElementById("buttons").hidden = true;
-    setTimeout(poll, 2000); return;
+function answer(choice) {
+  if (round === null || !ready) return;
+  answers.push({left: 0, right: 1, equal: 0.5, skip: "skip"}[choice]); show();
+}
+function undo() {
+  if (round === null || submitting || answers.length === 0) return;
+  answers.pop(); show();
+}
+async function submit() {
+  if (round === null || submitting || answers.length < n) return;
+  submitting = true; $("submit").hidden = $("undo").hidden = true;
+  $("progress").textContent = `round ${round}: saving...`;
+  try {
+    const reply = await fetch(`/api/labels/${round}`, {method: "POST", body: JSON.stringify(answers)});
+    $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)` : reply.status === 409
+      ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used`
+      : `round ${round} was not saved: ${await reply.text()}`;
+    round = null;
+  } catch (error) {  // the app is not there: keep the answers, to submit again
+    $("message").textContent = `round ${round} was not saved: the app does not answer (${error.message}); submit again`;
+    show();
   }
-  round = state.round; n = state.n; i = 0; answers = []; show();
+  submitting = false; clearTimeout(timer); refresh();
 }
-async function answer(choice) {
-  if (round === null) return;
-  answers.push({left: 0, right: 1, equal: 0.5, skip: "skip"}[choice]);
-  if (++i < n) { show(); return; }
-  const done = round; round = null;
-  const reply = await fetch(`/api/labels/${done}`, {method: "POST", body: JSON.stringify(answers)});
-  progress.textContent = reply.ok ? `round ${done} saved` : `saving failed: ${await reply.text()}`;
-  setTimeout(poll, 1000);
+function idle() {  // what the run is doing when no round is waiting
+  const t = state.teacher;
+  if (t?.phase === "finished") return `the run has finished: ${state.labels} labels in ${state.rounds_answered} rounds`;
+  if (t?.phase === "training") return `no round is waiting; the run is training (step ${t.step} of ${t.total_steps})`;
+  return "no round is waiting for labels; this page checks every 2 s";
 }
-for (const choice of ["left", "equal", "right", "skip"])
-  document.getElementById(`answer-${choice}`).onclick = () => answer(choice);
+function render() {
+  const t = state.teacher, notices = [];
+  $("run").textContent = `${state.task ?? "task not known yet"} \\u00b7 run ${state.run} \\u00b7 ` +
+    `${state.labels} labels so far` + (t ? ` (budget ${t.budget})` : "");
+  if (state.malformed !== null)
+    notices.push(`labels/${state.round}.json is not valid: ${state.malformed}. Submitting round ${state.round}'s ` +
+                 `answers from this page replaces it (the old file is kept as labels/${state.round}.json.rejected-...).`);
+  if (state.silent_for !== null)
+    notices.push(`the run is not responding (last heard ${Math.round(state.silent_for)} s ago): ` +
+                 "running the same command again resumes it");
+  if (t?.phase === "stopped") notices.push(`the run has stopped: ${t.message ?? "no reason given"}`);
+  $("notices").replaceChildren(...notices.map((text) => Object.assign(document.createElement("p"), {textContent: text})));
+  if (round === null && !submitting) $("progress").textContent = idle();
+}
+async function refresh() {
+  try {
+    const reply = await fetch("/api/state");
+    if (!reply.ok) throw new Error(await reply.text());
+    state = await reply.json();
+    render();
+    if (round === null && !submitting && state.round !== null) { round = state.round; n = state.n; answers = []; show(); }
+  } catch (error) {
+    $("notices").replaceChildren(Object.assign(document.createElement("p"),
+      {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
+  }
+  timer = setTimeout(refresh, 2000);
+}
+for (const choice of ["left", "equal", "right", "skip"]) $(`answer-${choice}`).onclick = () => answer(choice);
+$("undo").onclick = undo; $("submit").onclick = submit;
 document.addEventListener("keydown", (e) => {
   const choice = {ArrowLeft: "left", ArrowRight: "right", "=": "equal", " ": "equal", s: "skip"}[e.key];
-  if (choice) { e.preventDefault(); answer(choice); }
+  const action = choice ? () => answer(choice) : {Backspace: undo, Enter: submit}[e.key];
+  if (action) { e.preventDefault(); action(); }
 });
-poll();
+refresh();
 </script></body></html>
 """
 
 
 def make_handler(run_dir: str, clips: Clips):
     class Handler(BaseHTTPRequestHandler):
-        def reply(self, code: int, body: bytes, content_type: str):
+        timeout = 60  # seconds: a client that sends less than its Content-Length does not hold a thread for ever
+
+        def reply(self, code: int, body: bytes, content_type: str = "text/plain; charset=utf-8"):
             self.send_response(code)
             self.send_header("Content-Type", content_type)
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
             self.wfile.write(body)
 
+        def answer(self, route):
+            """Answer with `route`'s reply; a refused request gets its code and one line, never a traceback."""
+            try:
+                reply = route(urlsplit(self.path).path)
+            except Refused as e:
+                reply = e.code, str(e).encode()
+            except ValueError as e:
+                reply = 400, str(e).encode()
+            except Exception as e:  # a bug, or a renderer that fails: one line here and on the page; the app serves on
+                sentence = f"{type(e).__name__}: {e}".splitlines()[0]
+                print(f"label_app: {self.command} {self.path}: {sentence}", file=sys.stderr, flush=True)
+                reply = 500, sentence.encode()
+            if reply[0] >= 400:
+                self.close_connection = True  # the body of a refused request may be left unread
+            self.reply(*reply)
+
         def do_GET(self):
-            if self.path == "/":
-                return self.reply(200, PAGE.encode(), "text/html; charset=utf-8")
-            if self.path == "/api/state":
-                round_index = pending_round(run_dir)
-                n = None if round_index is None else len(clips.queries(round_index)["physics"])
-                return self.reply(200, json.dumps({"round": round_index, "n": n}).encode(), "application/json")
-            match = re.fullmatch(r"/clip/(\d+)/(\d+)/([01])\.gif", self.path)
-            if match:
-                return self.reply(200, clips.gif(*map(int, match.groups())), "image/gif")
-            self.reply(404, b"not found", "text/plain")
+            self.answer(self.get)
 
         def do_POST(self):
-            match = re.fullmatch(r"/api/labels/(\d+)", self.path)
+            self.answer(self.post)
+
+        def get(self, path: str) -> tuple:
+            if path == "/":
+                return 200, PAGE.encode(), "text/html; charset=utf-8"
+            if path == "/api/state":
+                return 200, json.dumps(state(run_dir)).encode(), "application/json"
+            match = re.fullmatch(r"/clip/(\d+)/(\d+)/([01])\.gif", path)
             if not match:
-                return self.reply(404, b"not found", "text/plain")
-            try:
-                answers = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-                write_labels(run_dir, int(match.group(1)), answers)
-            except (ValueError, OSError) as e:
-                return self.reply(400, str(e).encode(), "text/plain")
-            self.reply(200, b"saved", "text/plain")
+                raise Refused(404, f"no such page: {path}")
+            time.sleep(CLIP_DELAY)
+            return 200, clips.gif(*map(int, match.groups())), "image/gif"
+
+        def post(self, path: str) -> tuple:
+            match = re.fullmatch(r"/api/labels/(\d+)", path)
+            if not match:
+                raise Refused(404, f"no such page: {path}")
+            length = self.headers.get("Content-Length", "")
+            if not re.fullmatch(r"\d+", length):
+                raise ValueError("expected a Content-Length header: the size of the body in bytes")
+            if int(length) > MAX_BODY:  # refused before reading it
+                raise Refused(413, f"the body has {length} bytes; at most {MAX_BODY} are accepted")
+            round_index = int(match.group(1))
+            write_labels(run_dir, round_index, self.rfile.read(int(length)))
+            return 200, f"round {round_index} saved (labels/{round_index}.json)".encode()
 
         def log_message(self, *args):  # no line per request
             pass
@@ -188,11 +456,22 @@ def make_handler(run_dir: str, clips: Clips):
     return Handler
 
 
+class Server(ThreadingHTTPServer):
+    def handle_error(self, request, client_address):
+        if not isinstance(sys.exc_info()[1], ConnectionError):  # a page that moves on drops its pending clips
+            super().handle_error(request, client_address)
+
+
 def main(args: Args) -> int:
     if not os.path.isdir(args.run_dir):
         print(f"label_app: error: run_dir: no such folder: {args.run_dir}", file=sys.stderr)
         return 1
-    server = ThreadingHTTPServer((args.host, args.port), make_handler(args.run_dir, Clips(args.run_dir, args.fps)))
+    try:
+        server = Server((args.host, args.port), make_handler(args.run_dir, Clips(args.run_dir, args.fps)))
+    except OSError as e:
+        flag = f"--port {args.port}" if e.errno == errno.EADDRINUSE else f"--host {args.host}"
+        print(f"label_app: error: {flag}: {(e.strerror or str(e)).lower()}", file=sys.stderr)
+        return 1
     print(f"labelling {args.run_dir} at http://{args.host}:{server.server_port} (remote: ssh -L "
           f"{server.server_port}:localhost:{server.server_port} HOST, then open http://localhost:{server.server_port})",
           flush=True)

@@ -25,12 +25,14 @@ the current reward ensemble and is overwritten by the next relabel.
 Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
 """
 import dataclasses
+import hashlib
 import importlib.util
 import json
 import math
 import os
 import random
 import signal
+import socket
 import time
 from collections import deque
 from dataclasses import dataclass, field, fields
@@ -155,6 +157,11 @@ class Args:
     """if toggled, `torch.backends.cudnn.deterministic=True`"""
     cuda: bool = True
     """if toggled, cuda will be used when available"""
+    compile: bool = False
+    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
+    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    tf32: bool = False
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -189,6 +196,8 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
     if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
@@ -680,7 +689,8 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
 
 def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, reward_model: RewardEnsemble,
                    reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
-                   queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str) -> float:
+                   queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
+                   external: Optional["ExternalTeacher"]) -> float:
     """Ask the teacher one round of queries, train the reward ensemble on all labels, relabel the whole buffer.
     Returns the seconds spent waiting for an external teacher (not training time)."""
     noise, obs_dim = rb.noise, rb.obs.shape[1]
@@ -689,10 +699,10 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
         reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
         with_physics=True,
     )
-    waited = 0.0
-    if args.teacher == "external" and n_queries:  # a person or a program answers
-        keep, labels, waited = ask_external_teacher(run_folder, queries.next_round, args.env_id, obs_dim, segments,
-                                                    true_rewards, physics)
+    waited, sha256 = 0.0, ""
+    if external and n_queries:  # a person or a program answers
+        keep, labels, sha256, waited = external.ask(queries.next_round, args.env_id, obs_dim, segments, true_rewards,
+                                                    physics, global_step, loop.total_feedback, loop.labeled_feedback)
     else:
         margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
         keep, labels = teacher(
@@ -700,7 +710,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
             args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
         )
     queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics,
-                torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step)
+                torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step, sha256)
     queries.save(f"{run_folder}/preferences.npz", args.env_id, obs_dim)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
@@ -719,6 +729,14 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
                            args.diagnostic_pairs, args.segment_size)
     return waited
+
+
+def feedback_due(step: int, pebble_start: int, loop: Loop, args: Args) -> bool:
+    """Whether step `step` begins with a feedback round: the first at `pebble_start`, then one every
+    `feedback_freq` steps while the budget lasts."""
+    return step == pebble_start or (
+        step > pebble_start and (step - pebble_start) % args.feedback_freq == 0 and loop.total_feedback < args.max_feedback
+    )
 
 
 def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
@@ -749,16 +767,17 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds: step / total, phase, SPS since the
-    last line, ETA at that rate, feedback used and the latest evaluation return. It reads the clock and host values
-    only, so it adds no host sync to the training loop."""
+    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
+    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
+    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
+    sync to the training loop."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
         self.total_steps, self.budget, self.interval = total_steps, budget, interval
-        self.phase, self.time, self.step, self.eval_return = None, time.monotonic(), 0, None
+        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
-    def update(self, step: int, phase: str, feedback: Optional[int] = None):
-        now = time.monotonic()
+    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
+        now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
         sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
@@ -895,6 +914,10 @@ def catch_stop_signals() -> list:
     return stop_signals
 
 
+class Stopped(Exception):
+    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+
+
 class NonFinite(Exception):
     """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
 
@@ -945,7 +968,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     if not np.array_equal(obs, resume["obs"].cpu().numpy()):
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
-    start_step = progress.step = resume["global_step"]
+    start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
     if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
@@ -965,28 +988,31 @@ def write_npz(path: str, **arrays):
 
 class QueryLog:
     """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
-    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step."""
+    physics states, the label (NaN: skipped), the round (-1: from `--preferences`), the env step, and the SHA-256 of
+    the labels file the label was read from (`--teacher external`; else empty)."""
 
     def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
         self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
         self.physics = np.zeros((0, 2, segment_steps, physics_dim))
         self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.label_sha256 = np.zeros(0, "<U64")
 
     @property
     def next_round(self) -> int:
         return int(self.rounds.max(initial=-1)) + 1
 
-    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int):
+    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int, label_sha256: str = ""):
         new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
-                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
+                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step),
+                   label_sha256=np.full(len(labels), label_sha256))
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
 
     def save(self, path: str, env_id: str, obs_dim: int):
         write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
                   true_rewards=self.true_rewards, physics=self.physics, labels=self.labels, rounds=self.rounds,
-                  steps=self.steps)
+                  steps=self.steps, label_sha256=self.label_sha256)
 
 
 def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
@@ -1008,34 +1034,88 @@ def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
     return arrays
 
 
-def ask_external_teacher(folder: str, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor,
-                         true_rewards: torch.Tensor, physics: np.ndarray, poll_seconds: float = 1.0) -> tuple:
-    """`--teacher external`: write the round's queries to `{folder}/queries/{round}.npz`, then wait for
-    `{folder}/labels/{round}.json`: a JSON list with, per query, 1 (the second segment is preferred), 0 (the
-    first), 0.5 (equal) or "skip". A malformed file gets one line and the wait goes on. Returns (the answered
-    pairs' mask, labels with 0 where skipped, both on the segments' device; seconds spent waiting)."""
-    rows = segments.cpu().numpy()
-    write_npz(f"{folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
-              physics=physics, true_rewards=true_rewards.cpu().numpy())
-    path, n, started, seen = f"{folder}/labels/{round_index}.json", len(rows), time.monotonic(), None
-    print(f"waiting for labels: {path}, one per query of {folder}/queries/{round_index}.npz (by hand: python "
-          f"label_app.py {folder})", flush=True)
-    while True:
-        stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
-        if stamp is not None and stamp != seen:
-            seen = stamp
-            try:
-                with open(path) as f:
-                    answers = json.load(f)
-                if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
-                    raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
-                break
-            except ValueError as e:  # a JSONDecodeError too
-                print(f"labels: {path}: {e}; waiting for a corrected file", flush=True)
-        time.sleep(poll_seconds)
-    answers = np.array([np.nan if a == "skip" else a for a in answers], np.float32)
-    keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
-    return keep.to(segments.device), labels.to(segments.device), time.monotonic() - started
+class ExternalTeacher:
+    """`--teacher external` (README: "Labelling by hand"): a round's queries go to `queries/{round}.npz`, its labels
+    come from `labels/{round}.json`, a JSON list with, per query, 1 (the second segment is preferred), 0 (the first),
+    0.5 (equal) or "skip". The run reads a round's file once it is valid and records its SHA-256; a resume checks
+    that the files it trained on are unchanged (`check_labels_unchanged`). `teacher.json` tells the labelling page
+    what the run is doing: waiting for a round (rewritten every poll), training, finished or stopped."""
+
+    def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
+        self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
+        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(), host=socket.gethostname(),
+                        budget=args.max_feedback, total_steps=args.total_timesteps)
+
+    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
+        """Write `teacher.json` atomically: what the labelling page shows."""
+        status = dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked, labelled=labelled,
+                      step=step, message=message, updated=time.time())
+        with open(f"{self.folder}/teacher.json.tmp", "w") as f:
+            json.dump(status, f)
+        os.replace(f"{self.folder}/teacher.json.tmp", f"{self.folder}/teacher.json")
+
+    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
+            physics: np.ndarray, step: int, asked: int, labelled: int) -> tuple:
+        """Write the round's queries, then wait for a valid labels file; a malformed one gets one line (and the
+        page's notice) and the wait goes on. Returns (the answered pairs' mask, labels with 0 where skipped, both on
+        the segments' device; the file's SHA-256; seconds spent waiting). A stop signal raises `Stopped`: the state
+        written before the round resumes into it."""
+        rows = segments.cpu().numpy()
+        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim],
+                  actions=rows[..., obs_dim:], physics=physics, true_rewards=true_rewards.cpu().numpy())
+        path, n, started, seen, problem = f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
+        print(f"waiting for labels: {path}, one per query of {self.folder}/queries/{round_index}.npz (by hand: python "
+              f"label_app.py {self.folder})", flush=True)
+        while True:
+            if self.stop_signals:
+                raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
+                              f"round is saved: run the same command with --run-name {self.run['run']} to resume")
+            stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
+            if stamp is not None and stamp != seen:
+                seen = stamp
+                with open(path, "rb") as f:
+                    content = f.read()
+                problem = labels_problem(content, n)
+                if problem is None:
+                    break
+                problem = f"labels: {path}: {problem}; waiting for a corrected file"
+                print(problem, flush=True)
+            self.tell("waiting", step, asked, labelled, round_index, n, problem)
+            time.sleep(self.poll_seconds)
+        answers = np.array([np.nan if a == "skip" else a for a in json.loads(content)], np.float32)
+        keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
+        self.tell("training", step, asked + n, labelled + int(keep.sum()))
+        sha256 = hashlib.sha256(content).hexdigest()
+        return keep.to(segments.device), labels.to(segments.device), sha256, time.monotonic() - started
+
+
+
+def check_labels_unchanged(folder: str, queries: dict):
+    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds what it read,
+    or a ValueError says which."""
+    for round_index, recorded in sorted(set(zip(queries["rounds"].tolist(), queries["label_sha256"].tolist()))):
+        path = f"{folder}/labels/{round_index}.json"
+        if recorded and file_sha256(path) != recorded:
+            raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 {recorded[:12]}...); put it "
+                             f"back as it was (the run's preferences.npz holds its labels, round {round_index})")
+
+
+def labels_problem(content: bytes, n: int) -> Optional[str]:
+    """Why a labels file's bytes are not n valid answers, or None."""
+    try:
+        answers = json.loads(content)
+    except (ValueError, RecursionError) as e:  # a UnicodeDecodeError and a JSONDecodeError are ValueErrors
+        return f"not JSON ({type(e).__name__})"
+    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+        return f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"'
+    return None
+
+
+def file_sha256(path: str) -> Optional[str]:
+    if not os.path.exists(path):
+        return None
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
 
 
 @torch.no_grad()
@@ -1071,6 +1151,8 @@ if __name__ == "__main__":
             args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback
         )
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
+        if resume and args.teacher == "external":
+            check_labels_unchanged(f"runs/{run_name}", resume["objects"]["queries"])
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
@@ -1092,6 +1174,9 @@ if __name__ == "__main__":
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
+    torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
+    if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
+        critic_update, actor_update, target_update = map(torch.compile, (critic_update, actor_update, target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
@@ -1126,6 +1211,7 @@ if __name__ == "__main__":
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
+    external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
     progress = Progress(args.total_timesteps, args.max_feedback)
     obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
     del resume
@@ -1134,12 +1220,12 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
     pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
-            run_folder)  # what a feedback round reads and changes
+            run_folder, external)  # what a feedback round reads and changes
     try:
         for global_step in range(start_step, args.total_timesteps):
             phase = ("random" if global_step < args.learning_starts
                      else "pre-training" if global_step < pebble_start else "PbRL")
-            progress.update(global_step, phase, loop.total_feedback)
+            progress.update(global_step, phase, time.time() - start_time, loop.total_feedback)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
@@ -1185,7 +1271,7 @@ if __name__ == "__main__":
                     for _ in range(args.reset_updates):
                         sac_update(agent, rb.sample(args.batch_size), loop, args)
                 else:
-                    if (global_step - pebble_start) % args.feedback_freq == 0 and loop.total_feedback < args.max_feedback:
+                    if feedback_due(global_step, pebble_start, loop, args):
                         start_time += feedback_round(args.query_sampling, global_step, *pbrl)
                     sac_update(agent, rb.sample(args.batch_size), loop, args)
 
@@ -1209,22 +1295,29 @@ if __name__ == "__main__":
                 if args.save_model:
                     save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
 
-            if stop_signals or state_due(global_step, args, last_state):
+            if stop_signals or state_due(global_step, args, last_state) or (
+                external and feedback_due(global_step + 1, pebble_start, loop, args)  # a person's round can resume
+            ):
                 save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
                            writer)
                 last_state = time.monotonic()
                 if stop_signals:
-                    writer.close()
-                    raise SystemExit(f"{args.exp_name}: stopped by {stop_signals[0]} after step {global_step + 1}; state "
-                                     f"saved in {state_path}: run the same command with --run-name {run_name} to resume")
-    except NonFinite as e:  # the checkpoint is written first, for debugging
-        save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; state saved in "
+                                  f"{state_path}: run the same command with --run-name {run_name} to resume")
+    except (Stopped, NonFinite) as e:
+        if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
+            save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+            e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
+        if external:
+            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback, message=str(e))
         writer.close()
-        raise SystemExit(f"{args.exp_name}: error: {e}; checkpoint for debugging: {checkpoint_path}")
+        raise SystemExit(f"{args.exp_name}: {e}")
 
     env.close()
     for eval_env in eval_envs:
         eval_env.close()
     writer.close()
+    if external:
+        external.tell("finished", args.total_timesteps, loop.total_feedback, loop.labeled_feedback)
     if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
         os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint

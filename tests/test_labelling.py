@@ -1,5 +1,6 @@
 """Real preferences (README: "Labelling by hand"): `preferences.npz`, the external-teacher file protocol with a
 scripted teacher, `--preferences` reuse, and the labelling page in a real headless Chromium."""
+import hashlib
 import json
 import os
 import shutil
@@ -7,6 +8,8 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 
 import numpy as np
 import pytest
@@ -131,11 +134,32 @@ def free_port():
         return s.getsockname()[1]
 
 
-@pytest.mark.skipif(os.environ.get("CI") is None and not (CHROMIUM and CHROMEDRIVER),
-                    reason="needs Debian's chromium and chromium-driver (installed by .ci/run, where it always runs)")
-def test_labelling_page_in_a_headless_browser(tmp_path):
+needs_chromium = pytest.mark.skipif(
+    os.environ.get("CI") is None and not (CHROMIUM and CHROMEDRIVER),
+    reason="needs Debian's chromium and chromium-driver (installed by .ci/run, where it always runs)")
+
+
+def chrome():
+    """Debian's Chromium, headless, driven by selenium."""
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=900,700"):
+        options.add_argument(flag)
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+
+
+def answers_enabled(driver):
+    """Whether the page takes answers: both clips of the current query have loaded."""
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.ID, "answer-left").is_enabled()
+
+
+@needs_chromium
+def test_labelling_page_in_a_headless_browser(tmp_path):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
     from selenium.webdriver.support.ui import WebDriverWait
@@ -146,11 +170,7 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
     port = free_port()
     app = subprocess.Popen([sys.executable, os.path.join(ROOT, "label_app.py"), str(run), "--port", str(port)],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=900,700"):
-        options.add_argument(flag)
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    driver = chrome()
     try:
         assert app.stdout.readline().startswith(f"labelling {run} at http://127.0.0.1:{port}"), "the app did not start"
         driver.get(f"http://127.0.0.1:{port}/")
@@ -158,6 +178,7 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         WebDriverWait(driver, 60).until(lambda d: progress() == "round 0: query 1 of 5")
         loaded = "return document.getElementById('left').naturalWidth * document.getElementById('right').naturalWidth"
         WebDriverWait(driver, 120).until(lambda d: d.execute_script(loaded) > 0)  # both clips rendered
+        WebDriverWait(driver, 30).until(answers_enabled)  # the page takes answers once both have loaded
         driver.save_screenshot(str(tmp_path / "label_app.png"))
         if os.environ.get("R2N_SCREENSHOT"):  # to refresh the README's picture
             shutil.copy(tmp_path / "label_app.png", os.environ["R2N_SCREENSHOT"])
@@ -166,19 +187,38 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         WebDriverWait(driver, 30).until(lambda d: progress() == "round 0: query 2 of 5")
         body = driver.find_element(By.TAG_NAME, "body")
         for key, position in [(Keys.ARROW_RIGHT, 3), ("=", 4), ("s", 5)]:  # keyboard
+            WebDriverWait(driver, 120).until(answers_enabled)
             body.send_keys(key)
             WebDriverWait(driver, 30).until(lambda d: progress() == f"round 0: query {position} of 5")
+        WebDriverWait(driver, 120).until(answers_enabled)
         driver.find_element(By.ID, "answer-right").click()
+        WebDriverWait(driver, 30).until(lambda d: progress() == "round 0: all 5 answered")
+        assert not (run / "labels" / "0.json").exists()  # the last answer can still be undone
+        driver.find_element(By.ID, "submit").click()
         wait_for(lambda: (run / "labels" / "0.json").exists(), process, log)
         assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5, "skip", 1]
         # the run goes on: its next round appears on the page, answered by keyboard
         wait_for(lambda: (run / "queries" / "1.npz").exists(), process, log)
         WebDriverWait(driver, 60).until(lambda d: progress() == "round 1: query 1 of 5")
         for position in range(5):
+            WebDriverWait(driver, 120).until(answers_enabled)
             body.send_keys(Keys.ARROW_LEFT)
+        WebDriverWait(driver, 30).until(lambda d: progress() == "round 1: all 5 answered")
+        body.send_keys(Keys.ENTER)
         assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
         assert json.loads((run / "labels" / "1.json").read_text()) == [0] * 5
         assert scalars(str(run))["pbrl/labeled_feedback"] == [4, 9]
+        # the labels on disk are the training data, and the run's record of them; the page says the run finished
+        files = [(run / "labels" / f"{r}.json").read_bytes() for r in (0, 1)]
+        with np.load(run / "preferences.npz") as data:
+            expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)]
+            np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
+            assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files for _ in range(5)]
+        WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(request, timeout=30)
+        assert refused.value.code == 409 and (run / "labels" / "1.json").read_bytes() == files[1]
     finally:
         driver.quit()
         app.terminate()  # not SIGINT: a background job (a CI runner) ignores it, and so would the app

@@ -39,6 +39,7 @@ RUN = ["--no-cuda", "--seed", "3", "--exp-name", "numerics", "--run-name", "nume
 # The checkpoint's `args` equal the reference's but for flags added or re-defaulted since that only say when state.pt
 # is written (issue 19: --state-minutes added, --checkpoint-freq from 10000 to None); none touches training.
 NOT_TRAINING = ("state_minutes", "checkpoint_freq")
+ADDED_FLAGS = {"compile": False, "tf32": False}  # numerics flags added since the reference, off by default there
 
 
 def reference_source(path: str) -> bytes:
@@ -107,6 +108,7 @@ def test_numerics_equal_the_reference(script, tmp_path):
     old, new = (torch.load(cwd / "runs" / "numerics" / "numerics.cleanrl_model", weights_only=False)
                 for cwd in (reference, current))
     old_args, new_args = ({k: v for k, v in c.pop("args").items() if k not in NOT_TRAINING} for c in (old, new))
+    old_args.update({k: v for k, v in ADDED_FLAGS.items() if k in new_args})  # flags added since, at their defaults
     absent = object()
     changed = sorted(k for k in old_args.keys() | new_args.keys() if old_args.get(k, absent) != new_args.get(k, absent))
     assert not changed, f"{script}: the checkpoint's args differ from {REFERENCE_COMMIT}'s in {changed}"

@@ -111,11 +111,10 @@ def test_progress_duration_text():
 
 def test_progress_prints_at_phase_changes_and_reports_sps_eta(capsys):
     progress = pebble.Progress(total_steps=10_000, budget=400)
-    progress.update(0, "random", 0)
-    progress.time -= 40  # 1000 steps in 40 s: 25 SPS, 9000 steps left: 6 min
-    progress.update(1000, "pre-training", 0)
+    progress.update(0, "random", 0.0, 0)
+    progress.update(1000, "pre-training", 40.0, 0)  # 1000 steps in 40 s of training: 25 SPS, 9000 steps left: 6 min
     progress.eval_return = 12.34
-    progress.update(1001, "pre-training", 0)  # same phase, 0 s later: no line
+    progress.update(1001, "pre-training", 40.0, 0)  # same phase, 0 s later: no line
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 2
     assert lines[1] == "progress: step 1000/10000 (10%) | pre-training | 25 SPS | ETA 6m | feedback 0/400 | eval return -"

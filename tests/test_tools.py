@@ -229,6 +229,25 @@ def test_skipped_runs_are_reported_not_averaged(synthetic):
 
 
 @needs_analysis
+def test_runs_with_other_numerics_are_never_averaged_or_compared(tmp_path):
+    """--compile and --tf32 change numerics: such a run is skipped from an eager group, and a method whose runs all
+    used other numerics than its baseline's gets no test, with one note saying why."""
+    root = str(tmp_path / "runs")
+    for seed in (1, 2, 3):
+        write_run(root, "cheetah-run", 0.9, 1000, "pebble", seed, [1.0, 2.0, 3.0, 4.0, 5.0 + seed])
+        write_run(root, "cheetah-run", 0.9, 1000, "r2n_pebble", seed, [1.0, 2.0, 3.0, 4.0, 6.0 + seed], tf32=True)
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 4, [9.0] * 5, compile=True)
+    assert analyze.main(analyze.Args(log_dirs=(root,), output_dir=str(tmp_path / "out"), plots=False)) == 0
+    runs = {os.path.basename(os.path.dirname(r["path"])): r for r in read_csv(tmp_path / "out" / "runs.csv")}
+    assert runs["cheetah-run__pebble__4__100"]["reason"] == (
+        "mismatched settings: compile=True (group: False) (numerics flags: never averaged together)")
+    row = {r["method"]: r for r in read_csv(tmp_path / "out" / "final_return.csv")}["r2n_pebble"]
+    assert row["p_value"] in ("", "nan") and row["seeds"] == "3"
+    assert ("not compared with pebble: the numerics flags differ (tf32=True vs False); runs with different numerics "
+            "are never compared") in row["notes"]
+
+
+@needs_analysis
 def test_unfinished_runs_align_on_common_steps(synthetic, tmp_path):
     """--include-unfinished: the unfinished seed joins its group, which is truncated to the steps all runs have."""
     data, bad = synthetic["data"], synthetic["bad"]

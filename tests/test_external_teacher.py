@@ -1,0 +1,120 @@
+"""A person's labels and waiting time are safe (README: "Labelling by hand"): the run records the SHA-256 of each
+labels file it trains on and a resume refuses a changed one; a state is written before every round, so SIGTERM
+while waiting, or a kill before any other state, resumes into the same queries; `teacher.json` says what the run
+does; the wait does not count in the progress line's rate."""
+import hashlib
+import json
+import os
+import signal
+
+import sys
+
+import numpy as np
+
+from test_labelling import EXTERNAL, oracle_answers, start, wait_for
+from test_resume import points
+from test_scripts import ROOT
+
+sys.path.insert(0, ROOT)
+import pebble  # noqa: E402
+
+
+def status(run):
+    return json.loads((run / "teacher.json").read_text())
+
+
+def answer(run, round_index, process, log):
+    """The scripted teacher: waits for the round's queries, writes the oracle's answers; returns the file's bytes."""
+    wait_for(lambda: (run / "queries" / f"{round_index}.npz").exists(), process, log)
+    with np.load(run / "queries" / f"{round_index}.npz") as data:
+        content = json.dumps(oracle_answers({"true_rewards": data["true_rewards"]})).encode()
+    (run / "labels").mkdir(exist_ok=True)
+    (run / "labels" / f"{round_index}.json").write_bytes(content)
+    return content
+
+
+def queries_of(run, round_index):
+    with np.load(run / "queries" / f"{round_index}.npz") as data:
+        return {key: data[key] for key in data}
+
+
+def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_file_is_refused(tmp_path):
+    reference, resumed = tmp_path / "reference", tmp_path / "resumed"
+    for folder in (reference, resumed):
+        folder.mkdir()
+    process, log = start("pebble.py", reference, EXTERNAL)
+    for round_index in (0, 1):
+        answer(reference / "runs" / "ext", round_index, process, log)
+    assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
+
+    run = resumed / "runs" / "ext"
+    process, log = start("pebble.py", resumed, EXTERNAL)
+    first = answer(run, 0, process, log)
+    wait_for(lambda: (run / "teacher.json").exists() and status(run)["round"] == 1, process, log)
+    assert {key: status(run)[key] for key in ("task", "run", "phase", "queries", "asked", "labelled", "budget")} == {
+        "task": "cartpole-swingup", "run": "ext", "phase": "waiting", "queries": 5, "asked": 5,
+        "labelled": 5, "budget": 10,
+    }
+    asked = queries_of(run, 1)
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=60) == 1
+    last = open(log).read().strip().splitlines()[-1]
+    assert "stopped by SIGTERM while waiting for runs/ext/labels/1.json" in last and "--run-name ext to resume" in last
+    assert status(run)["phase"] == "stopped" and status(run)["message"] in last
+    assert (run / "state.pt").exists()
+
+    # a labels file the run trained on, changed: the resume stops with one line, before any training
+    (run / "labels" / "0.json").write_text(json.dumps([0.5] * 5))
+    process, log = start("pebble.py", resumed, EXTERNAL)
+    assert process.wait(timeout=120) == 1
+    lines = open(log).read().strip().splitlines()
+    assert len(lines) == 1 and "runs/ext/labels/0.json is not the labels file this run trained on" in lines[0]
+
+    # put back: the run resumes into round 1, with the same queries, and ends as the uninterrupted run
+    (run / "labels" / "0.json").write_bytes(first)
+    process, log = start("pebble.py", resumed, EXTERNAL)
+    wait_for(lambda: "resuming runs/ext/state.pt at step 1000" in open(log).read(), process, log)
+    second = answer(run, 1, process, log)
+    assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
+    for key, value in queries_of(run, 1).items():
+        np.testing.assert_array_equal(value, asked[key])
+    assert_same_points(run, reference / "runs" / "ext")
+    with np.load(run / "preferences.npz") as data:
+        digests = [hashlib.sha256(content).hexdigest() for content in (first, second)]
+        assert data["label_sha256"].tolist() == [digests[0]] * 5 + [digests[1]] * 5
+        np.testing.assert_array_equal(data["labels"], np.array(json.loads(first) + json.loads(second), np.float32))
+    assert status(run)["phase"] == "finished" and status(run)["labelled"] == 10 and status(run)["asked"] == 10
+
+
+def assert_same_points(run, reference):
+    """Every TensorBoard point of the uninterrupted run, bitwise (SPS aside: wall-clock)."""
+    expected, actual = points(reference), points(run)
+    assert sorted(expected) == sorted(actual)
+    for tag in expected:
+        if tag != "charts/SPS":
+            assert actual[tag] == expected[tag], f"{tag} differs"
+
+
+def test_a_kill_during_the_first_round_resumes_into_it(tmp_path):
+    run = tmp_path / "runs" / "ext"
+    process, log = start("pebble.py", tmp_path, EXTERNAL)
+    wait_for(lambda: (run / "queries" / "0.npz").exists(), process, log)
+    asked = queries_of(run, 0)
+    assert (run / "state.pt").exists()  # written at the end of the step before the round: the run's first state
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=60)
+    process, log = start("pebble.py", tmp_path, EXTERNAL)
+    wait_for(lambda: "resuming runs/ext/state.pt at step 500" in open(log).read(), process, log)
+    answer(run, 0, process, log)
+    answer(run, 1, process, log)
+    assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
+    for key, value in queries_of(run, 0).items():
+        np.testing.assert_array_equal(value, asked[key])
+
+
+def test_the_progress_rate_counts_training_time_only(capsys):
+    progress = pebble.Progress(total_steps=10_000, interval=30.0)
+    progress.update(0, "PbRL", seconds=100.0)
+    progress.update(600, "PbRL", seconds=130.0)  # 600 steps in 30 s of training, however long a person took
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "| 20 SPS | ETA 7m" in line, line

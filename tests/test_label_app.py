@@ -1,0 +1,330 @@
+"""The labelling page (README: "Labelling by hand"), on a run folder written by hand: labels written once (409 for a
+second answer, a malformed file set aside, never deleted), the run's state from `teacher.json`, bad requests, and
+the page in a real headless Chromium (two tabs, clips before answers, undo, the run's states)."""
+import contextlib
+import http.client
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from test_labelling import answers_enabled, chrome, free_port, needs_chromium
+from test_scripts import ROOT
+
+LABEL_APP = os.path.join(ROOT, "label_app.py")
+
+
+def make_run(tmp_path, queries_per_round=(3,), teacher=None):
+    """A run folder as `--teacher external` writes it: `queries/{r}.npz` per round (3-step cartpole segments, which
+    render fast), and `teacher.json` if given."""
+    run = tmp_path / "runs" / "ext"
+    (run / "queries").mkdir(parents=True)
+    for r, n in enumerate(queries_per_round):
+        physics = np.zeros((n, 2, 3, 4))
+        physics[:, 1, :, 0] = 0.5  # the right segment's cart stands elsewhere
+        np.savez(run / "queries" / f"{r}.npz", env_id="cartpole-swingup", obs=np.zeros((n, 2, 3, 5), np.float32),
+                 actions=np.zeros((n, 2, 3, 1), np.float32), physics=physics, true_rewards=np.zeros((n, 2, 3)))
+    if teacher is not None:
+        write_teacher(run, **teacher)
+    return run
+
+
+def write_teacher(run, **changes):
+    """The run's status file, as the run writes it (atomically), with `changes`."""
+    teacher = {"task": "cartpole-swingup", "run": "ext", "pid": os.getpid(), "host": socket.gethostname(),
+               "phase": "waiting", "round": 0, "queries": 3, "asked": 0, "labelled": 0, "budget": 10, "step": 500,
+               "total_steps": 1500, "message": None, "updated": time.time(), **changes}
+    (run / "teacher.json.tmp").write_text(json.dumps(teacher))
+    os.replace(run / "teacher.json.tmp", run / "teacher.json")
+
+
+@contextlib.contextmanager
+def serve(run, **env):
+    """The app on a free port, as a subprocess: yields its address; afterwards, its output has no traceback."""
+    port = free_port()
+    app = subprocess.Popen([sys.executable, LABEL_APP, str(run), "--port", str(port)], stdout=subprocess.PIPE,
+                           stderr=subprocess.STDOUT, text=True, env=dict(os.environ, OMP_NUM_THREADS="1", **env))
+    try:
+        assert app.stdout.readline().startswith(f"labelling {run} at http://127.0.0.1:{port}"), "the app did not start"
+        yield f"127.0.0.1:{port}"
+    finally:
+        app.terminate()
+        output = app.communicate(timeout=30)[0]
+    assert "Traceback" not in output, output
+
+
+def request(address, method, path, body=None, headers=None):
+    """(status, body) of one request, with exactly the given headers (a POST gets its Content-Length unless given)."""
+    connection = http.client.HTTPConnection(address, timeout=30)
+    connection.putrequest(method, path)
+    headers = {"Content-Length": str(len(body))} if headers is None and body is not None else headers or {}
+    for key, value in headers.items():
+        connection.putheader(key, value)
+    connection.endheaders()
+    if body is not None:
+        connection.send(body)
+    reply = connection.getresponse()
+    result = reply.status, reply.read()
+    connection.close()
+    return result
+
+
+def get_state(address):
+    status, body = request(address, "GET", "/api/state")
+    assert status == 200
+    return json.loads(body)
+
+
+def test_label_app_writes_a_round_once(tmp_path):
+    run = make_run(tmp_path, (3, 3))
+    (run / "labels").mkdir()
+    written = b'[1,  0, "skip"]\n'  # by hand: its bytes stay as they are
+    (run / "labels" / "0.json").write_bytes(written)
+    with serve(run) as address:
+        assert get_state(address)["round"] == 1
+        status, body = request(address, "POST", "/api/labels/0", b"[0, 0, 0]")
+        assert status == 409 and body.decode() == ("round 0 is already answered (labels/0.json); a round's labels are "
+                                                   "written once and never change")
+        assert (run / "labels" / "0.json").read_bytes() == written
+        assert request(address, "POST", "/api/labels/1", b'[0.5, 1, "skip"]')[0] == 200
+        assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 409
+        assert json.loads((run / "labels" / "1.json").read_text()) == [0.5, 1, "skip"]
+        assert get_state(address)["round"] is None
+    assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
+
+
+def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    path = str(tmp_path / "0.json")
+    for text in ("[1, 2", "[1, 0"):  # two malformed files within a second: both kept
+        (tmp_path / "0.json").write_text(text)
+        assert not label_app.keeps_existing(path, 2) and not os.path.exists(path)
+    kept = sorted(name for name in os.listdir(tmp_path))
+    assert len(kept) == 2 and kept[0].startswith("0.json.rejected-") and kept[1] == kept[0] + "-2"
+    assert [(tmp_path / name).read_text() for name in kept] == ["[1, 2", "[1, 0"]
+    # a valid file that replaced the malformed one between the check and the move is moved back: it is the answer
+    (tmp_path / "0.json").write_text("[1, 0]")
+    checks = iter([False])  # the check before the move saw the malformed file
+    monkeypatch.setattr(label_app, "is_valid", lambda p, n: next(checks, True))
+    assert label_app.keeps_existing(path, 2)
+    assert (tmp_path / "0.json").read_text() == "[1, 0]" and sorted(os.listdir(tmp_path)) == ["0.json", *kept]
+
+
+def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
+    run = make_run(tmp_path, (3, 3, 3))
+    (run / "labels").mkdir()
+    (run / "labels" / "0.json").write_text('[1, "skip", 0.5]')
+    (run / "labels" / "1.json").write_text("[1, 0]")
+    with serve(run) as address:
+        # no teacher.json (an older run, or one that has not asked yet): the files alone
+        assert get_state(address) == {
+            "run": "ext", "task": "cartpole-swingup", "round": 1, "n": 3,
+            "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "rounds_answered": 1, "labels": 2,
+            "teacher": None, "silent_for": None}
+        write_teacher(run, round=1, asked=3, labelled=2)
+        state = get_state(address)
+        assert state["teacher"]["phase"] == "waiting" and state["labels"] == 2 and state["silent_for"] is None
+        write_teacher(run, labelled=7)
+        assert get_state(address)["labels"] == 7  # the run's own count, when it has one
+        write_teacher(run, updated=time.time() - 100)  # waiting, and no news for 100 s
+        assert 100 <= get_state(address)["silent_for"] < 130
+        gone = subprocess.Popen(["true"])
+        gone.wait()
+        write_teacher(run, phase="training", pid=gone.pid)  # a process of this machine that has gone
+        assert get_state(address)["silent_for"] is not None
+        write_teacher(run, phase="training", pid=gone.pid, host="elsewhere")  # another machine's: cannot tell
+        assert get_state(address)["silent_for"] is None
+        write_teacher(run, phase="finished", pid=gone.pid, updated=time.time() - 100)
+        assert get_state(address)["silent_for"] is None
+
+
+def test_label_app_answers_bad_requests_and_serves_on(tmp_path):
+    run = make_run(tmp_path, (3,))
+    nested = b"[" * 20000 + b"]" * 20000  # under the size limit, beyond json's recursion limit
+    with serve(run) as address:
+        for method, path, body, headers, code in [
+            ("GET", "/nothing", None, None, 404),
+            ("GET", "/clip/1/0/0.gif", None, None, 404),  # a round without queries
+            ("GET", "/clip/0/3/0.gif", None, None, 404),  # query 3 of a round of 3 (0, 1, 2)
+            ("GET", "/clip/0/0/2.gif", None, None, 404),
+            ("POST", "/api/other", b"[]", None, 404),
+            ("POST", "/api/labels/1", b"[0, 0, 0]", None, 404),  # a round without queries
+            ("POST", "/api/labels/0", None, {}, 400),  # no Content-Length
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "three"}, 400),
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "-9"}, 400),
+            ("POST", "/api/labels/0", b"[0, 0,", None, 400),
+            ("POST", "/api/labels/0", b"\xff\xfe", None, 400),
+            ("POST", "/api/labels/0", nested, None, 400),
+            ("POST", "/api/labels/0", b"[0, 2, 0]", None, 400),
+            ("POST", "/api/labels/0", b"[0, 1]", None, 400),
+            ("POST", "/api/labels/0", b'{"answers": [0, 1, 0]}', None, 400),
+            ("POST", "/api/labels/0", None, {"Content-Length": "70000"}, 413),  # refused before a body is sent
+        ]:
+            status, reply = request(address, method, path, body, headers)
+            assert status == code and len(reply.decode().splitlines()) == 1, (method, path, status, reply)
+            assert get_state(address)["round"] == 0  # serving on, nothing written
+        assert not (run / "labels").exists() or os.listdir(run / "labels") == []
+
+
+def test_label_app_port_in_use(tmp_path):
+    run = make_run(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run([sys.executable, LABEL_APP, str(run), "--port", str(port)], capture_output=True,
+                                text=True, timeout=120, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert result.returncode == 1 and result.stderr == f"label_app: error: --port {port}: address already in use\n"
+
+
+def open_page(driver, address):
+    from selenium.webdriver.common.by import By
+
+    driver.get(f"http://{address}/")
+    return lambda element="progress": driver.find_element(By.ID, element).text
+
+
+def answer_round(driver, keys, submit=True):
+    """Answer the queries shown, one key each once the page takes answers, then submit with Enter."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    body = driver.find_element(By.TAG_NAME, "body")
+    for key in keys:
+        WebDriverWait(driver, 60).until(answers_enabled)
+        body.send_keys(key)
+    WebDriverWait(driver, 30).until(lambda d: d.find_element(By.ID, "submit").is_displayed())
+    if submit:
+        body.send_keys(Keys.ENTER)
+
+
+@needs_chromium
+def test_label_app_two_tabs_answering_a_round_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    with serve(run) as address, contextlib.closing(chrome()) as first, contextlib.closing(chrome()) as second:
+        texts = [open_page(driver, address) for driver in (first, second)]
+        for driver, text in zip((first, second), texts):
+            WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
+        answer_round(first, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], submit=False)
+        answer_round(second, [Keys.ARROW_RIGHT, "="], submit=False)
+        answer_round(first, [])  # the first tab submits first and wins
+        WebDriverWait(first, 30).until(lambda d: texts[0]("message") == "round 0 saved (labels/0.json)")
+        answer_round(second, [])
+        WebDriverWait(second, 30).until(lambda d: texts[1]("message") == (
+            "round 0 was already answered, perhaps in another tab: your answers for it were not used"))
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]
+        for driver, text in zip((first, second), texts):  # both move on
+            WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+
+
+@needs_chromium
+def test_label_app_malformed_labels_file_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    (run / "labels").mkdir()
+    (run / "labels" / "0.json").write_bytes(b"[1, 2")  # by hand, unfinished
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("labels/0.json is not valid: not JSON: "))
+        assert text("notices").endswith("Submitting round 0's answers from this page replaces it (the old file is kept "
+                                        "as labels/0.json.rejected-...).")
+        answer_round(driver, ["s", Keys.ARROW_LEFT])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == ["skip", 0]
+        rejected = [name for name in os.listdir(run / "labels") if name != "0.json"]
+        assert len(rejected) == 1 and rejected[0].startswith("0.json.rejected-")
+        assert abs(int(rejected[0].split("-")[1]) - time.time()) < 60
+        assert (run / "labels" / rejected[0]).read_bytes() == b"[1, 2"
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == "")
+
+
+@needs_chromium
+def test_label_app_clips_before_answers_and_undo_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    # every clip takes 2 s more: the page is seen before its clips have loaded
+    with serve(run, R2N_LABEL_APP_CLIP_DELAY="2") as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        body = driver.find_element(By.TAG_NAME, "body")
+        clips = driver.find_element(By.ID, "clips")
+        loaded = "return document.getElementById('left').complete && document.getElementById('right').complete"
+
+        def query(i, fresh=True):
+            """Query i of 3 is shown; a fresh one (its clips never loaded) at first without clips, its answers not
+            taken; then with both clips."""
+            WebDriverWait(driver, 30).until(lambda d: text() == f"round 0: query {i} of 3")
+            if fresh:
+                assert not answers_enabled(driver) and not clips.is_displayed()
+                body.send_keys(Keys.ARROW_LEFT)  # not taken
+            WebDriverWait(driver, 60).until(answers_enabled)
+            assert text() == f"round 0: query {i} of 3" and clips.is_displayed() and driver.execute_script(loaded)
+
+        query(1)
+        driver.find_element(By.ID, "answer-left").click()
+        query(2)  # its clips were fetched ahead, but are still on their way
+        body.send_keys("=")
+        query(3)
+        body.send_keys("s")
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        assert text("submit") == "\u23ce submit round 0" and not clips.is_displayed()
+        driver.find_element(By.ID, "undo").click()  # the last answer too can be undone
+        query(3, fresh=False)
+        body.send_keys(Keys.ARROW_RIGHT)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        body.send_keys(Keys.BACKSPACE, Keys.BACKSPACE)  # back to query 2
+        query(2, fresh=False)
+        body.send_keys(Keys.ARROW_RIGHT)
+        query(3, fresh=False)
+        body.send_keys(Keys.ARROW_LEFT)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        assert not (run / "labels" / "0.json").exists()  # nothing is written before the round is submitted
+        body.send_keys(Keys.ENTER)
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0]
+
+
+@needs_chromium
+def test_label_app_run_states_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3, 3), teacher={"phase": "training", "round": None, "queries": None, "asked": 6,
+                                             "labelled": 5, "step": 1000})
+    (run / "labels").mkdir()
+    (run / "labels" / "0.json").write_text('[1, 0, "skip"]')
+    (run / "labels" / "1.json").write_text("[1, 0, 0]")
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting; the run is training (step 1000 of 1500)")
+        assert text("run") == "cartpole-swingup \u00b7 run ext \u00b7 5 labels so far (budget 10)" and text("notices") == ""
+        gone = subprocess.Popen(["true"])
+        gone.wait()
+        write_teacher(run, phase="training", pid=gone.pid, round=None, step=1000, updated=time.time() - 42)
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("the run is not responding (last heard 4"))
+        assert text("notices").endswith(" s ago): running the same command again resumes it")
+        message = "stopped by SIGTERM while waiting for labels/2.json: run the same command again to resume"
+        write_teacher(run, phase="stopped", pid=gone.pid, message=message)
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == f"the run has stopped: {message}")
+        write_teacher(run, phase="finished", pid=gone.pid, round=None, labelled=5, step=1500)
+        WebDriverWait(driver, 30).until(lambda d: text() == "the run has finished: 5 labels in 2 rounds")
+        assert text("notices") == ""
+        driver.save_screenshot(str(tmp_path / "label_app_finished.png"))
+        if os.environ.get("R2N_SCREENSHOT_FINISHED"):  # to refresh the README's picture
+            shutil.copy(tmp_path / "label_app_finished.png", os.environ["R2N_SCREENSHOT_FINISHED"])
