@@ -1137,15 +1137,15 @@ def write_npz(path: str, **arrays):
 
 class QueryLog:
     """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
-    physics states, the label (NaN: skipped), the round (-1: from `--preferences`), the env step, and the SHA-256 of
-    the labels file the label was read from (`--teacher external`; else empty)."""
+    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step; per round, the
+    SHA-256 of the labels file its labels were read from (`--teacher external`; else empty)."""
 
     def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
         self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
         self.physics = np.zeros((0, 2, segment_steps, physics_dim))
         self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
-        self.label_sha256 = np.zeros(0, "<U64")
+        self.label_sha256 = np.zeros(0, "<U64")  # indexed by round
 
     @property
     def next_round(self) -> int:
@@ -1153,10 +1153,12 @@ class QueryLog:
 
     def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int, label_sha256: str = ""):
         new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
-                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step),
-                   label_sha256=np.full(len(labels), label_sha256))
+                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
+        if round_index >= 0:  # padded: a state written before the SHA-256 were kept resumes with none for its rounds
+            self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
+                                                [label_sha256]]).astype("<U64")
 
     def save(self, path: str, env_id: str, obs_dim: int):
         write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
@@ -1242,7 +1244,7 @@ class ExternalTeacher:
 def check_labels_unchanged(folder: str, queries: dict):
     """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds what it read,
     or a ValueError says which."""
-    for round_index, recorded in sorted(set(zip(queries["rounds"].tolist(), queries["label_sha256"].tolist()))):
+    for round_index, recorded in enumerate(queries.get("label_sha256", [])):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
             raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 {recorded[:12]}...); put it "

@@ -10,6 +10,7 @@ import signal
 import sys
 
 import numpy as np
+import pytest
 
 from test_labelling import EXTERNAL, oracle_answers, start, wait_for
 from test_resume import points
@@ -81,7 +82,7 @@ def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_
     assert_same_points(run, reference / "runs" / "ext")
     with np.load(run / "preferences.npz") as data:
         digests = [hashlib.sha256(content).hexdigest() for content in (first, second)]
-        assert data["label_sha256"].tolist() == [digests[0]] * 5 + [digests[1]] * 5
+        assert data["label_sha256"].tolist() == digests  # per round
         np.testing.assert_array_equal(data["labels"], np.array(json.loads(first) + json.loads(second), np.float32))
     assert status(run)["phase"] == "finished" and status(run)["labelled"] == 10 and status(run)["asked"] == 10
 
@@ -118,3 +119,20 @@ def test_the_progress_rate_counts_training_time_only(capsys):
     progress.update(600, "PbRL", seconds=130.0)  # 600 steps in 30 s of training, however long a person took
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert "| 20 SPS | ETA 7m" in line, line
+
+
+def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resumes():
+    """A state written before the SHA-256 were kept has none for its rounds: the next rounds pad, and the resume's
+    check has nothing to compare for the old ones."""
+    queries = pebble.QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
+    rows = dict(inputs=np.zeros((2, 2, 2, 3)), true_rewards=np.zeros((2, 2, 2)), physics=np.zeros((2, 2, 2, 1)),
+                labels=np.array([1.0, np.nan]))
+    queries.add(**rows, round_index=-1, step=-1)  # `--preferences`: no round, no file
+    queries.add(**rows, round_index=0, step=500, label_sha256="a" * 64)
+    assert queries.label_sha256.tolist() == ["a" * 64]
+    queries.label_sha256 = np.zeros(0, "<U64")  # as restored from an older state
+    queries.add(**rows, round_index=1, step=1000, label_sha256="b" * 64)
+    assert queries.label_sha256.tolist() == ["", "b" * 64] and len(queries.labels) == 6
+    pebble.check_labels_unchanged("nowhere", {"rounds": queries.rounds})  # an older state: nothing recorded
+    with pytest.raises(ValueError, match="nowhere/labels/1.json is not the labels file this run trained on"):
+        pebble.check_labels_unchanged("nowhere", {"label_sha256": queries.label_sha256})
