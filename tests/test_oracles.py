@@ -337,9 +337,9 @@ def test_sac_is_pebble_without_preference_learning():
     # 373 lines of preference learning, plus 48 of its diagnostics (reward_diagnostics, optimizer_steps, their flags),
     # plus 11 of its part of the resume state (PreferenceBuffer's state methods, the PbRL objects and counters),
     # plus 115 for real preferences (preferences.npz, the external teacher, --preferences, physics of queried steps),
-    # plus 77 for trusting them (issue 20: teacher.json, the labels files' SHA-256 and its check on resume, the state
-    # before every external round)
-    assert 0 < len(changes) <= 633, f"diff sac.py pebble.py: {len(changes)} changed lines > 633"
+    # plus 79 for trusting them (issue 20: teacher.json, the labels files' SHA-256 per round and their check on
+    # resume, the state before every external round)
+    assert 0 < len(changes) <= 635, f"diff sac.py pebble.py: {len(changes)} changed lines > 635"
     # outside the docstrings sac.py is pebble.py with lines deleted and a handful reworded
     code_changes = _changes(_without_docstring(sac_source), _without_docstring(pebble_source))
     sac_only = [line for line in code_changes if line.startswith("-")]
