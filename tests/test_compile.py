@@ -6,6 +6,7 @@ import importlib
 import os
 import shutil
 import sys
+import sysconfig
 
 import pytest
 import torch
@@ -15,8 +16,11 @@ from test_scripts import ROOT, TINY, run_script, scalars
 
 sys.path.insert(0, ROOT)
 
-needs_compiler = pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
-                                    reason="torch.compile's CPU backend needs a C compiler")
+needs_compiler = pytest.mark.skipif(
+    shutil.which("cc") is None and shutil.which("gcc") is None
+    or not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")),
+    reason="torch.compile's CPU backend needs a C compiler and Python's headers",
+)
 STEPS = ("critic_update", "actor_update", "target_update")
 
 
