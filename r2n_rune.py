@@ -1274,7 +1274,6 @@ class ExternalTeacher:
         return keep.to(segments.device), labels.to(segments.device), sha256, time.monotonic() - started
 
 
-
 def check_labels_unchanged(folder: str, queries: dict):
     """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds what it read,
     or a ValueError says which."""
