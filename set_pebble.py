@@ -190,6 +190,8 @@ class Args:
     tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
     tf32: bool = False
     """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
+    cuda_graph: bool = False
+    """replay the SAC steps' gradients as CUDA graphs (a GPU only): faster, the same numbers as eager on that GPU"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -226,6 +228,8 @@ def validate_args(args: Args) -> None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
     if args.tf32 and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
+    if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
         raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
     if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
@@ -675,7 +679,6 @@ class SparseOptimizer:
     def zero_grad(self):
         self.optimizer.zero_grad()
 
-    @torch.compiler.disable  # eager under --compile (a graph break) in every sparse script: RigL's counters would recompile
     def step(self):
         if self.sparsity == 0:
             return self.optimizer.step()
@@ -769,8 +772,9 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
                  log_alpha.detach().exp(), a_optimizer, target_entropy=-float(act_dim))
 
 
-def critic_update(agent: Agent, data: Batch, gamma: float) -> dict:
-    """One gradient step of both critics towards the soft Bellman target. Returns the losses, on the device."""
+def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
+    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target. Returns the losses, on the
+    device."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
         next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
@@ -779,24 +783,20 @@ def critic_update(agent: Agent, data: Batch, gamma: float) -> dict:
     qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
     agent.q_optimizer.zero_grad()
     (qf1_loss + qf2_loss).backward()
-    agent.q_optimizer.step()
     return dict(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
                 qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
 
 
-def actor_update(agent: Agent, data: Batch) -> dict:
-    """One gradient step of the actor, then of the temperature towards the target entropy."""
+def actor_gradients(agent: Agent, data: Batch) -> dict:
+    """The gradients of the actor's loss, and of the temperature's towards the target entropy. Returns the losses."""
     pi, log_pi, _ = agent.actor.get_action(data.obs)
     actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
     agent.actor_optimizer.zero_grad()
     actor_loss.backward()
-    agent.actor_optimizer.step()
     alpha_loss = (-agent.log_alpha.exp() * (log_pi.detach() + agent.target_entropy)).mean()
     agent.a_optimizer.zero_grad()
     alpha_loss.backward()
-    agent.a_optimizer.step()
-    agent.alpha.copy_(agent.log_alpha.detach().exp())
-    return dict(actor_loss=actor_loss.detach(), alpha=agent.alpha.clone(), alpha_loss=alpha_loss.detach())
+    return dict(actor_loss=actor_loss.detach(), alpha_loss=alpha_loss.detach())
 
 
 @torch.no_grad()
@@ -823,11 +823,17 @@ class Loop:
 
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
-    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`."""
-    loop.losses.update(critic_update(agent, data, args.gamma))
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`. The optimiser steps are
+    apart from the gradients, on the host: `--cuda-graph` replays the gradients and the targets' update only."""
+    loop.losses.update(critic_gradients(agent, data, args.gamma))
+    agent.q_optimizer.step()
     loop.sac_updates += 1
     if loop.sac_updates % args.actor_update_freq == 0:
-        loop.losses.update(actor_update(agent, data))
+        losses = actor_gradients(agent, data)
+        agent.actor_optimizer.step()
+        agent.a_optimizer.step()
+        agent.alpha.copy_(agent.log_alpha.detach().exp())
+        loop.losses.update(actor_loss=losses["actor_loss"], alpha=agent.alpha.clone(), alpha_loss=losses["alpha_loss"])
     if loop.sac_updates % args.target_update_freq == 0:
         target_update(agent, args.tau)
 
@@ -945,6 +951,46 @@ class Progress:
         minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
         return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
 
+
+
+class CudaGraph:
+    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of hundreds of small kernels
+    from Python. Tensor inputs (a `Batch`'s too) are copied into the graph's own before each replay; other inputs are
+    fixed. The first calls run eagerly on a side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the
+    capture), the next is captured, later ones replay it. A graph reads the tensors it was captured with: when the
+    agent's networks or optimisers are replaced (PEBBLE's critic reset) or a fixed input changes, it is captured again."""
+    warmup_calls = 2
+
+    def __init__(self, step):
+        self.step, self.graph, self.agent_objects, self.fixed, self.calls = step, None, [], None, 0
+
+    @staticmethod
+    def tensors(inputs) -> list:
+        return [t for x in inputs for t in (x if isinstance(x, tuple) else [x]) if isinstance(t, torch.Tensor)]
+
+    def __call__(self, agent, *inputs):
+        objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
+        if any(a is not b for a, b in zip(objects, self.agent_objects)) or fixed != self.fixed:
+            self.graph, self.calls = None, 0  # held here, the replaced objects keep their ids: no false match
+            self.agent_objects, self.fixed = objects, fixed
+        self.calls += 1
+        if self.calls <= self.warmup_calls:
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                outputs = self.step(agent, *inputs)
+            torch.cuda.current_stream().wait_stream(side)
+            return outputs
+        if self.graph is None:
+            self.inputs = [type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
+                           if isinstance(x, torch.Tensor) else x for x in inputs]
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph):
+                self.outputs = self.step(agent, *self.inputs)
+        else:
+            torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
+        self.graph.replay()
+        return self.outputs
 
 
 # the training state `state.pt`, for exact resume (README: "Resuming a run")
@@ -1083,12 +1129,15 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
                device: torch.device, envs: list, writer: SummaryWriter):
     """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
     objects, the generators, the envs' generators and the observation to act on."""
+    started = time.time()
     writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
     save_atomically({
         "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
         "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
         "envs": [e.rng_state() for e in envs],
     }, path)
+    print(f"state saved after step {global_step + 1}: {os.path.getsize(path) / 1e9:.2f} GB in "
+          f"{time.time() - started:.1f} s", flush=True)
 
 
 def state_due(global_step: int, args, last_state: float) -> bool:
@@ -1328,7 +1377,11 @@ if __name__ == "__main__":
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
-        critic_update, actor_update, target_update = map(torch.compile, (critic_update, actor_update, target_update))
+        critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
+                                                                              target_update))
+    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`)
+        critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
+                                                                           target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
@@ -1438,6 +1491,7 @@ if __name__ == "__main__":
                     check_finite(logged, global_step)
 
             if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
+                eval_start = time.time()
                 eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
                 sps = int((global_step + 1) / (time.time() - start_time))
                 loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
@@ -1448,8 +1502,9 @@ if __name__ == "__main__":
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
                         writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
+                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds="
+                      f"{time.time() - eval_start:.2f} feedback={loop.total_feedback}/{args.max_feedback} "
+                      f"labels={loop.labeled_feedback}", flush=True)
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -21,7 +21,7 @@ needs_compiler = pytest.mark.skipif(
     or not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")),
     reason="torch.compile's CPU backend needs a C compiler and Python's headers",
 )
-STEPS = ("critic_update", "actor_update", "target_update")
+STEPS = ("critic_gradients", "actor_gradients", "target_update")
 
 
 def tiny_batch(module, step: int, obs_dim: int, act_dim: int, batch_size: int = 16):

@@ -104,13 +104,16 @@ def test_rune_stores_population_std_of_members():
     assert torch.equal(batch.stds, rb.stds[batch.indices]) and torch.equal(batch.rewards, rb.rewards[batch.indices])
 
 
-def test_rune_critic_target_reward_includes_beta_sigma():
-    rewards, stds = torch.tensor([0.5, -0.2]), torch.tensor([0.1, 0.3])
-    assert torch.allclose(rune.rune_reward(rewards, stds, 0.04), torch.tensor([0.504, -0.188]))
-    assert torch.equal(rune.rune_reward(rewards, stds, 0.0), rewards)  # pre-training: sac_update's default beta 0
+def test_rune_batch_adds_beta_sigma_to_the_rewards_for_the_critic_target():
+    rewards, stds, other = torch.tensor([0.5, -0.2]), torch.tensor([0.1, 0.3]), torch.zeros(2)
+    data = rune.Batch(obs=other, actions=other, rewards=rewards, next_obs=other, dones=other, indices=other, stds=stds)
+    bonus = rune.rune_batch(data, 0.04)
+    assert torch.allclose(bonus.rewards, torch.tensor([0.504, -0.188]))
+    assert all(getattr(bonus, name) is getattr(data, name) for name in data._fields if name != "rewards")
     source = open(os.path.join(ROOT, "rune.py")).read()
-    assert "rewards = rune_reward(data.rewards, data.stds, beta)  # RUNE's bonus; beta 0 in pre-training\n" \
-           "        target_q = rewards + " in source
+    # in the updates after the critic reset and in every later one; pre-training's reward is the state entropy alone
+    assert source.count("sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)") == 2
+    assert "rune_batch" not in source[source.index("if global_step < pebble_start:"):source.index("elif global_step == pebble_start:")]
 
 
 # SURF

@@ -1,0 +1,40 @@
+#!/bin/bash
+# The GPU speed runs of issue 19 (README "What a run costs"): `bash results/gpu-speed/run.sh PART OUT`, then
+# `python results/gpu-speed/speed.py OUT --from-step S`. Every configuration runs r2n_pebble.py on cheetah-run at
+# noise 0.9 with the paper's networks (1024 wide, batch 1024) and default evaluations (10 episodes every 5000 steps);
+# pre-training is cut to 1000 steps (`--unsup-steps 1000`) so that the device time goes to the learned-reward phase,
+# whose feedback rounds (every 5000 steps) fall inside the windows. Runs of one configuration start together.
+set -u
+part=$1
+out=$2
+root=$(cd "$(dirname "$0")/../.." && pwd)
+base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --log-freq 1000)
+
+config() {  # name, runs at once, total steps, flags...
+  local name=$1 n=$2 steps=$3
+  shift 3
+  mkdir -p "$out/$name"
+  echo "$(date +%T) $name: $n run(s) of $steps steps, flags: $*"
+  for i in $(seq 1 "$n"); do
+    (cd "$out/$name" && python "$root/r2n_pebble.py" "${base[@]}" --total-timesteps "$steps" --seed "$i" \
+      --run-name "run$i" "$@" > "run$i.log" 2>&1 || echo "$name run$i failed: $(tail -2 run$i.log)") &
+  done
+  wait
+}
+
+case $part in
+  probe)  # a first look: 4000-step windows (4000 to 8000)
+    config eager 1 8000 --eval-freq 2000
+    config graph 1 8000 --eval-freq 2000 --cuda-graph
+    config graph-tf32 1 8000 --eval-freq 2000 --cuda-graph --tf32
+    config graph-tf32-compile 1 8000 --eval-freq 2000 --cuda-graph --tf32 --compile
+    ;;
+  window)  # the issue's windows: 20 000 steps of the learned-reward phase (5000 to 25 000), with a state write
+    config graph 1 25000 --cuda-graph --checkpoint-freq 10000
+    config graph-tf32 1 25000 --cuda-graph --tf32 --checkpoint-freq 10000
+    ;;
+  *)
+    echo "unknown part $part" >&2
+    exit 2
+    ;;
+esac
