@@ -942,7 +942,7 @@ class CudaGraph:
             self.graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(self.graph):
                 self.outputs = self.step(agent, *self.inputs)
-        else:
+        elif self.tensors(inputs):
             torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
         self.graph.replay()
         return self.outputs
@@ -1334,7 +1334,8 @@ if __name__ == "__main__":
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
         critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
                                                                               target_update))
-    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`)
+    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
+        torch.cuda.set_stream(torch.cuda.Stream())  # stream of its own: a capture cannot involve the legacy default one
         critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
                                                                            target_update))
 
