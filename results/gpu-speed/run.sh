@@ -29,9 +29,14 @@ case $part in
     config graph-tf32 1 8000 --eval-freq 2000 --cuda-graph --tf32
     config graph-tf32-compile 1 8000 --eval-freq 2000 --cuda-graph --tf32 --compile
     ;;
-  window)  # the windows: 20 000 steps of the learned-reward phase (5000 to 25 000), with a state write
-    config graph 1 25000 --cuda-graph --checkpoint-freq 10000
-    config graph-tf32 1 25000 --cuda-graph --tf32 --checkpoint-freq 10000
+  window)  # the window: 20 000 steps of the learned-reward phase (5000 to 25 000), with state writes
+    config window-graph 1 25000 --cuda-graph --checkpoint-freq 10000
+    ;;
+  aggregate)  # several runs at once on the GPU, with TF32 (4000-step windows, 4000 to 8000)
+    for n in 2 4 8; do
+      config "x$n-graph-tf32" "$n" 8000 --eval-freq 2000 --cuda-graph --tf32
+    done
+    config x8-256wide-graph-tf32 8 8000 --eval-freq 2000 --cuda-graph --tf32 --hidden-dim 256 --batch-size 256
     ;;
   *)
     echo "unknown part $part" >&2
