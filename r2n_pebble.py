@@ -1492,6 +1492,7 @@ if __name__ == "__main__":
             if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
                 eval_start = time.time()
                 eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
+                eval_seconds = time.time() - eval_start
                 sps = int((global_step + 1) / (time.time() - start_time))
                 loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
                 for tag, value in loop.last_eval.items():
@@ -1501,9 +1502,8 @@ if __name__ == "__main__":
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
                         writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds="
-                      f"{time.time() - eval_start:.2f} feedback={loop.total_feedback}/{args.max_feedback} "
-                      f"labels={loop.labeled_feedback}", flush=True)
+                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f} "
+                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -1,6 +1,6 @@
 """Issue 19's numerics flags on the CPU: `--compile` (torch.compile of the three SAC steps) matches eager within a
 float tolerance in all 12 scripts and compiles each step once; a run records the flags and a resume that flips one
-is refused; `--tf32` without a GPU fails with one line. (Capture with CUDA graphs needs a GPU: not tested here.)"""
+is refused; `--tf32` and `--cuda-graph` without a GPU fail with one line. (Capture: tests/test_cuda_graph.py, on a GPU.)"""
 import copy
 import importlib
 import os
@@ -94,10 +94,14 @@ def test_a_compiled_run_records_its_flag_and_a_resume_may_not_flip_it(tmp_path):
     assert refused.returncode == 1 and "the saved run differs in --compile True (now False)" in refused.stderr
 
 
-def test_tf32_without_a_gpu_fails_with_one_line(tmp_path):
+@pytest.mark.parametrize("flag, line", [
+    ("--tf32", "--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU"),
+    ("--cuda-graph", "--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU"),
+])
+def test_gpu_flags_without_a_gpu_fail_with_one_line(flag, line, tmp_path):
     if torch.cuda.is_available():
         pytest.skip("a GPU is here")
-    result = run_script("sac.py", ["--tf32", "--total-timesteps", "10"], tmp_path, check=False)
+    result = run_script("sac.py", [flag, "--total-timesteps", "10"], tmp_path, check=False)
     assert result.returncode == 1
-    assert result.stderr.strip() == "sac: error: --tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU"
+    assert result.stderr.strip() == f"sac: error: {line}"
     assert not os.path.exists(tmp_path / "runs")

@@ -5,6 +5,7 @@ the state, SIGTERM, and the checks on `--run-name` and on flags that changed."""
 import glob
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -122,6 +123,7 @@ def test_killed_at_a_random_moment_resumes_exactly(script, tmp_path):
     process.communicate()
     stdout, _ = run(script, tmp_path, "killed")  # the same command again
     assert "resuming runs/killed/state.pt at step" in stdout
+    assert re.search(r"state saved after step \d+: \d+\.\d\d GB in \d+\.\d s", stdout)  # a state every 150 steps
     assert_same_run(script, tmp_path / "runs" / "reference", tmp_path / "runs" / "killed")
     assert not os.path.exists(tmp_path / "runs" / "killed" / "state.pt")  # deleted at the end without --keep-state
     assert len(glob.glob(str(tmp_path / "runs" / "killed" / "events.out.tfevents.*"))) == 2

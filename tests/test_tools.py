@@ -4,6 +4,7 @@ the SLURM back-end through submitit (local executor; a fake `sbatch` for the job
 import csv
 import glob
 import importlib.util
+import json
 import math
 import os
 import re
@@ -768,3 +769,23 @@ def test_primary_metric_is_the_mean_of_the_last_evaluations():
     group = analyze.Group(("cheetah-run", 0.9, 1000, "pebble"), runs=[], steps=np.arange(1, 6) * 1000, curves=curves)
     assert np.array_equal(group.values("primary", 3), np.array([5.0, 1.0]))
     assert np.array_equal(group.values("primary", 1), group.final) and np.array_equal(group.values("auc", 3), group.auc)
+
+
+def test_gpu_speed_windows_from_event_wall_times_and_logs(tmp_path):
+    """results/gpu-speed/speed.py: a run's rate over its window is the steps between two evaluations over their
+    wall-clock gap; runs of one configuration add up; evaluations' and state writes' shares come from the log."""
+    for config, n in (("one", 1), ("two", 2)):
+        for i in range(1, n + 1):
+            writer = SummaryWriter(str(tmp_path / config / "runs" / f"run{i}"))
+            for step, wall in ((2000, 100.0), (4000, 110.0), (8000, 130.0)):  # 4000 steps in 20 s from step 4000
+                writer.add_scalar("eval/episodic_return", 1.0, step, walltime=wall)
+            writer.close()
+            (tmp_path / config / f"run{i}.log").write_text(
+                "step=4000 eval_return=1.00 SPS=9 eval_seconds=9.00 feedback=0/10 labels=0\n"
+                "state saved after step 6000: 0.92 GB in 1.0 s\n"
+                "step=8000 eval_return=1.00 SPS=9 eval_seconds=2.00 feedback=0/10 labels=0\n")
+    result = subprocess.run([sys.executable, os.path.join(ROOT, "results", "gpu-speed", "speed.py"), str(tmp_path),
+                             "--from-step", "4000"], capture_output=True, text=True, check=True)
+    assert "| one | 1 | 4000-8000 | 200.0 | 200.0 | 10.0% | 5.0% |" in result.stdout, result.stdout
+    assert "| two | 2 | 4000-8000 | 200.0 | 400.0 | 10.0% | 5.0% |" in result.stdout, result.stdout
+    assert json.load(open(tmp_path / "speed.json"))[1]["aggregate"] == 400.0
