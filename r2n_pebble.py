@@ -821,8 +821,8 @@ class Loop:
 
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
-    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`. The optimiser steps are
-    apart from the gradients, on the host: `--cuda-graph` replays the gradients and the targets' update only."""
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`. The optimiser steps run
+    eagerly, apart from the gradients: `--cuda-graph` replays the gradients and the targets' update only."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
