@@ -21,11 +21,14 @@ What the scripts use:
 * `build_histograms(observations, path)` / `load_histograms(path)`: the `.npz` used by `--noise-type imitate`.
 * `check_env_args(...)`: the input checks, raising `ValueError` with one line that names the flag.
 * `env.rng_state()` / `env.set_rng_state(...)` and `replay_episode(...)`: the env's part of a script's `state.pt`.
+* `EnvProcess(...)`: `make_env` in a process of its own; `step_async` / `step_wait` step several at once (evaluation).
 * `env.physics_state()` and `render_states(env_id, states)`: the stored physics of queried segments, drawn again.
 """
 
 import math
+import multiprocessing
 import os
+import signal
 import warnings
 from typing import Optional
 
@@ -177,6 +180,75 @@ class NoisyObservation(gym.ObservationWrapper):
     def physics_state(self) -> np.ndarray:
         """The MuJoCo state of the current step (qpos, qvel, act): what `render_states` needs to draw it again."""
         return self.unwrapped._env.physics.get_state().copy()
+
+    def step_async(self, action):
+        """`step_async(action)` then `step_wait()` is `step(action)`: the interface of `EnvProcess`, which steps in a
+        process of its own, so that a script steps several envs at once whichever kind they are."""
+        self.pending_action = action
+
+    def step_wait(self):
+        return self.step(self.pending_action)
+
+
+class EnvProcess:
+    """`make_env(*args)` in a process of its own, for stepping several envs at once: `step_async(action)` on each,
+    then `step_wait()` on each. `reset`, `step`, `rng_state`, `set_rng_state` and `close` are the env's, so a script
+    uses it as the env, for exact resume too; an error in the env's process is raised here, with its message."""
+
+    def __init__(self, *args):
+        context = multiprocessing.get_context("spawn")  # forking a process that holds a CUDA context is unsafe
+        self.pipe, child = context.Pipe()
+        self.process = context.Process(target=serve_env, args=(child, args), daemon=True)
+        self.process.start()
+        child.close()
+
+    def call(self, method: str, *args):
+        self.pipe.send((method, args))
+        return self.step_wait()
+
+    def reset(self, seed: Optional[int] = None):
+        return self.call("reset", seed)
+
+    def step(self, action):
+        return self.call("step", action)
+
+    def step_async(self, action):
+        self.pipe.send(("step", (action,)))
+
+    def step_wait(self):
+        failed, result = self.pipe.recv()
+        if failed:
+            raise RuntimeError(f"the env's process: {result}")
+        return result
+
+    def rng_state(self) -> dict:
+        return self.call("rng_state")
+
+    def set_rng_state(self, state: dict):
+        self.call("set_rng_state", state)
+
+    def close(self):
+        self.call("close")
+        self.process.join()
+
+
+def serve_env(pipe, args: tuple):
+    """The loop of an `EnvProcess`: run the env's method named in each message, send back (failed, result)."""
+    for stop in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2):  # the script's to handle (a cluster signals them all);
+        signal.signal(stop, signal.SIG_IGN)  # it still needs its envs to save its state, and they end when it does
+    env = make_env(*args)
+    while True:
+        try:
+            method, args = pipe.recv()
+        except EOFError:  # the script is gone (killed): so is the env
+            return
+        try:
+            result = env.reset(seed=args[0]) if method == "reset" else getattr(env, method)(*args)
+            pipe.send((False, result))
+        except Exception as e:
+            pipe.send((True, f"{type(e).__name__}: {e}"))
+        if method == "close":
+            return
 
 
 def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int = 320) -> np.ndarray:

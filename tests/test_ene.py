@@ -1,6 +1,7 @@
 """Tests of ene.py, the Extremely Noisy Environment (spec: ALGORITHMS.md section 1)."""
 
 import os
+import signal
 import sys
 import warnings
 
@@ -455,3 +456,45 @@ def test_replay_episode_brings_a_fresh_env_where_the_saved_one_was():
             assert np.array_equal(env.reset()[0], fresh.reset()[0])
     other = ene.make_env("cartpole-swingup", 4, 0.9, episode_length=20)  # a check that can fail: another seed
     assert not np.array_equal(ene.replay_episode(other, 4, None, actions), obs)
+
+
+def test_env_process_steps_as_the_env_does_and_carries_its_generators():
+    """`EnvProcess` is `make_env` in a process of its own: the same observations and rewards through `step_async` /
+    `step_wait` and `step`, the same generators (`rng_state`), and a state set on it is the env's too."""
+    args = ("cartpole-swingup", 3, 0.5, "gaussian", None, 30)
+    local, remote = ene.make_env(*args), ene.EnvProcess(*args)
+    try:
+        for env in (local, remote):
+            env.reset(seed=3)
+        actions = np.random.default_rng(0).uniform(-1, 1, (40, 1)).astype(np.float32)
+        for t, action in enumerate(actions):
+            for env in (local, remote):
+                env.step_async(action)
+            expected, got = local.step_wait(), remote.step_wait()
+            assert np.array_equal(expected[0], got[0]) and expected[1:4] == got[1:4], f"step {t}"
+            if expected[3]:  # truncated after 30 steps: both start a new episode from their own generators
+                assert np.array_equal(local.reset()[0], remote.reset()[0])
+        state = local.rng_state()
+        assert repr(remote.rng_state()) == repr(state)
+        remote.set_rng_state(ene.make_env(*args).rng_state())  # back to the seeded generators
+        assert repr(remote.rng_state()) != repr(state)
+        remote.set_rng_state(state)
+        assert np.array_equal(local.reset()[0], remote.reset()[0])
+        assert np.array_equal(local.step(actions[0])[0], remote.step(actions[0])[0])
+        with pytest.raises(RuntimeError, match="the env's process: "):
+            remote.step(np.full(3, np.nan, dtype=np.float32))  # the wrong shape: the env's own error, passed on
+    finally:
+        remote.close()
+    assert not remote.process.is_alive()
+
+
+def test_env_process_ignores_stop_signals_and_ends_with_its_script():
+    """A cluster signals every process of a job; the script handles the signal and still needs its envs to save
+    its state. An env's process ends when the script's end of the pipe closes (the script exited or was killed)."""
+    env = ene.EnvProcess("cartpole-swingup", 3, 0.5, "gaussian", None, 30)
+    env.reset(seed=3)
+    os.kill(env.process.pid, signal.SIGTERM)
+    assert env.rng_state()["noise"]  # still answering
+    env.pipe.close()
+    env.process.join(timeout=30)
+    assert env.process.exitcode == 0

@@ -39,7 +39,7 @@ RUN = ["--no-cuda", "--seed", "3", "--exp-name", "numerics", "--run-name", "nume
 # The checkpoint's `args` equal the reference's but for flags added or re-defaulted since that only say when state.pt
 # is written (issue 19: --state-minutes added, --checkpoint-freq from 10000 to None); none touches training.
 NOT_TRAINING = ("state_minutes", "checkpoint_freq")
-ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False}  # numerics flags added since the reference, off by default there
+ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False}  # added since, off there
 
 
 def reference_source(path: str) -> bytes:

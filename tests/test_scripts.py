@@ -141,6 +141,18 @@ def test_same_seed_same_returns(tmp_path):
     assert returns[0] == returns[1]
 
 
+def test_evaluation_envs_in_processes_give_the_same_run(tmp_path):
+    """`--parallel-eval` steps the evaluation envs at once in processes of their own: every point is the same."""
+    args = tiny_args("pebble.py") + ["--total-timesteps", "1500", "--eval-freq", "750", "--eval-episodes", "3"]
+    runs = []
+    for i, extra in enumerate(([], ["--parallel-eval"])):
+        run_script("pebble.py", args + ["--run-name", f"eval{i}", *extra], tmp_path)
+        runs.append(scalars(str(tmp_path / "runs" / f"eval{i}")))
+    assert len(runs[0]["eval/episodic_return"]) == 2
+    assert runs[0].keys() == runs[1].keys()
+    assert all(runs[0][tag] == runs[1][tag] for tag in runs[0] if tag != "charts/SPS")
+
+
 @pytest.mark.parametrize(
     "bad, flag",
     [
