@@ -25,6 +25,7 @@ What the scripts use:
 * `env.physics_state()` and `render_states(env_id, states)`: the stored physics of queried segments, drawn again.
 """
 
+import atexit
 import math
 import multiprocessing
 import os
@@ -201,6 +202,8 @@ class EnvProcess:
         self.process = context.Process(target=serve_env, args=(child, args), daemon=True)
         self.process.start()
         child.close()
+        # at exit, before multiprocessing joins its daemons: they ignore SIGTERM and end when the pipe closes
+        atexit.register(self.pipe.close)
 
     def call(self, method: str, *args):
         self.pipe.send((method, args))
@@ -216,7 +219,10 @@ class EnvProcess:
         self.pipe.send(("step", (action,)))
 
     def step_wait(self):
-        failed, result = self.pipe.recv()
+        try:
+            failed, result = self.pipe.recv()
+        except EOFError:
+            raise RuntimeError(f"the env's process ended (exit code {self.process.exitcode})") from None
         if failed:
             raise RuntimeError(f"the env's process: {result}")
         return result
@@ -229,14 +235,21 @@ class EnvProcess:
 
     def close(self):
         self.call("close")
-        self.process.join()
+        self.pipe.close()
+        self.process.join(timeout=30)
+        if self.process.is_alive():
+            self.process.kill()
 
 
 def serve_env(pipe, args: tuple):
     """The loop of an `EnvProcess`: run the env's method named in each message, send back (failed, result)."""
     for stop in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR2):  # the script's to handle (a cluster signals them all);
         signal.signal(stop, signal.SIG_IGN)  # it still needs its envs to save its state, and they end when it does
-    env = make_env(*args)
+    try:
+        env = make_env(*args)
+    except Exception as e:  # told at the first call
+        pipe.send((True, f"{type(e).__name__}: {e}"))
+        return
     while True:
         try:
             method, args = pipe.recv()

@@ -1065,8 +1065,9 @@ class CudaGraph:
     """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of hundreds of small kernels
     from Python. Tensor inputs (a `Batch`'s too) are copied into the graph's own before each replay; other inputs are
     fixed. The first calls run eagerly on a side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the
-    capture), the next is captured, later ones replay it. A graph reads the tensors it was captured with: when the
-    agent's networks or optimisers are replaced (PEBBLE's critic reset) or a fixed input changes, it is captured again."""
+    capture), the next is captured, later ones replay it and return the same output tensors, overwritten. A graph reads
+    the tensors it was captured with: when the agent's networks or optimisers are replaced (PEBBLE's critic reset) or a
+    fixed input changes, it is captured again."""
     warmup_calls = 2
 
     def __init__(self, step):
@@ -1092,9 +1093,10 @@ class CudaGraph:
         if self.graph is None:
             self.inputs = [type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
                            if isinstance(x, torch.Tensor) else x for x in inputs]
-            self.graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(self.graph):
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
                 self.outputs = self.step(agent, *self.inputs)
+            self.graph = graph  # only once captured: a failed capture is never replayed
         elif self.tensors(inputs):
             torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
         self.graph.replay()

@@ -2,6 +2,7 @@
 
 import os
 import signal
+import subprocess
 import sys
 import warnings
 
@@ -498,3 +499,20 @@ def test_env_process_ignores_stop_signals_and_ends_with_its_script():
     env.pipe.close()
     env.process.join(timeout=30)
     assert env.process.exitcode == 0
+
+
+def test_a_script_with_env_processes_exits_when_it_stops(tmp_path):
+    """The way a stopped run ends (SystemExit with envs still open): the interpreter's exit must not wait forever on
+    env processes that ignore SIGTERM. An env that cannot be made says why at the first call."""
+    script = tmp_path / "stop.py"
+    script.write_text(f"import sys\nsys.path.insert(0, {os.path.dirname(os.path.dirname(os.path.abspath(__file__)))!r})\n"
+                      "import ene\n"
+                      "if __name__ == '__main__':\n"
+                      "    env = ene.EnvProcess('cartpole-swingup', 3, 0.5, 'gaussian', None, 30)\n"
+                      "    env.reset(seed=3)\n"
+                      "    raise SystemExit('stopped')\n")
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1 and "stopped" in result.stderr
+    broken = ene.EnvProcess("cartpole-swingup", 3, 0.5, "gaussian", None, 0)  # episode length 0: make_env refuses
+    with pytest.raises(RuntimeError, match="the env's process: ValueError: --episode-length must be >= 1"):
+        broken.reset(seed=3)
