@@ -83,11 +83,12 @@ class Args:
 
 
 # Hyperparameters that may differ between the seeds of one group: they name, log or place a run, or change only
-# numerics (device, threads, chunking of the relabelling pass), not the algorithm.
+# numerics (device, threads, chunking of the relabelling pass), not the algorithm. `cuda_graph` gives the numbers of
+# eager on its GPU and `parallel_eval` the same returns (both tested), `state_minutes` only says when the state is written.
 RUN_SPECIFIC_KEYS = frozenset({
     "seed", "exp_name", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model", "threads",
     "cuda", "torch_deterministic", "log_freq", "relabel_batch_size", "diagnostic_transitions", "diagnostic_pairs",
-    "run_name", "checkpoint_freq", "keep_state",
+    "run_name", "checkpoint_freq", "keep_state", "state_minutes", "cuda_graph", "parallel_eval",
 })
 # Flags the scripts gained after runs were recorded, with the value those runs had in effect (only the simulated teacher
 # existed before `--teacher`), so that old and new runs of one configuration stay one group.

@@ -249,6 +249,24 @@ def test_runs_with_other_numerics_are_never_averaged_or_compared(tmp_path):
 
 
 @needs_analysis
+def test_run_settings_that_keep_the_numbers_are_averaged_together(tmp_path):
+    """--cuda-graph (the same numbers as eager), --parallel-eval (the same returns) and --state-minutes (when the state
+    is written) do not change what a run learns: runs that differ in them, or were recorded before they existed, are
+    one group."""
+    root = str(tmp_path / "runs")
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 1, [1.0] * 5)  # recorded before the three flags existed
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 2, [2.0] * 5, cuda_graph=True, parallel_eval=False,
+              state_minutes=10.0)
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 3, [3.0] * 5, cuda_graph=False, parallel_eval=True,
+              state_minutes=30.0)
+    assert analyze.main(analyze.Args(log_dirs=(root,), output_dir=str(tmp_path / "out"), plots=False)) == 0
+    runs = read_csv(tmp_path / "out" / "runs.csv")
+    assert [r["status"] for r in runs] == ["used"] * 3, runs
+    row = {r["method"]: r for r in read_csv(tmp_path / "out" / "final_return.csv")}["pebble"]
+    assert row["seeds"] == "3" and float(row["mean"]) == pytest.approx(2.0), row
+
+
+@needs_analysis
 def test_unfinished_runs_align_on_common_steps(synthetic, tmp_path):
     """--include-unfinished: the unfinished seed joins its group, which is truncated to the steps all runs have."""
     data, bad = synthetic["data"], synthetic["bad"]
