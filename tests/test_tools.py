@@ -807,3 +807,38 @@ def test_gpu_speed_windows_from_event_wall_times_and_logs(tmp_path):
     assert "| one | 1 | 4000-8000 | 200.0 | 200.0 | 10.0% | 5.0% |" in result.stdout, result.stdout
     assert "| two | 2 | 4000-8000 | 200.0 | 400.0 | 10.0% | 5.0% |" in result.stdout, result.stdout
     assert json.load(open(tmp_path / "speed.json"))[1]["aggregate"] == 400.0
+
+
+@needs_analysis
+def test_cheetah_power_achieved_is_read_only_when_the_study_is_complete(tmp_path):
+    """results/cheetah-study/power.py --achieved: refused while a PbRL run of the protocol is missing; then the
+    power for the planned +79.4 at the pooled SD of the primary metric (mean of the last 3 evaluations), as scipy's
+    noncentral t gives it independently here."""
+    from scipy import stats
+
+    study = tmp_path / "results" / "cheetah-study"
+    study.mkdir(parents=True)
+    script = study / "power.py"
+    script.write_text(open(os.path.join(ROOT, "results", "cheetah-study", "power.py")).read())
+    primary = {"pebble": [100.0, 140.0, 180.0, 220.0, 260.0, 300.0, 340.0, 380.0],
+               "r2n_pebble": [150.0, 170.0, 190.0, 210.0, 230.0, 250.0, 270.0, 290.0]}
+    for method, values in primary.items():
+        for seed, value in enumerate(values, 1):
+            folder = study / f"{method}__cheetah-run__noise0.9__budget1000__seed{seed}"
+            writer = SummaryWriter(str(folder))
+            for step, value_at_step in ((220_000, 0.0), (230_000, value - 3), (240_000, value), (250_000, value + 3)):
+                writer.add_scalar("eval/episodic_return", value_at_step, step)  # the last 3 average to `value`
+            writer.close()
+            if not (method == "r2n_pebble" and seed == 8):
+                (folder / "done").write_text("exit code 0\n")
+    command = [sys.executable, str(script), "--achieved"]
+    refused = subprocess.run(command, capture_output=True, text=True)
+    assert refused.returncode != 0 and "7 of 8 r2n_pebble runs are in" in refused.stderr, refused.stderr
+    (study / "r2n_pebble__cheetah-run__noise0.9__budget1000__seed8" / "done").write_text("exit code 0\n")
+    result = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    pooled = math.sqrt((np.var(primary["pebble"], ddof=1) + np.var(primary["r2n_pebble"], ddof=1)) / 2)
+    power = lambda effect: 1 - stats.nct.cdf(stats.t.ppf(0.95, 14), 14, effect / pooled * 2)  # d * sqrt(n / 2)
+    smallest = next(effect for effect in range(1, 1000) if power(effect) >= 0.8)
+    assert f"pooled {pooled:.1f}" in result, result
+    assert f"power for the planned effect +79.4 at 8 per arm: {power(79.4):.2f}" in result, result
+    assert f"smallest effect with 80% power: {smallest} points" in result, result

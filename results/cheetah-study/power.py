@@ -1,6 +1,7 @@
 """The cheetah study's power calculation, from the pilot's event files, by the rules of PILOT.md (fixed before it ran).
 
     python results/cheetah-study/power.py            # prints the numbers that PROTOCOL.md quotes
+    python results/cheetah-study/power.py --achieved # once all 8 + 8 study runs are in: the power they achieved
 
 Primary metric: the mean of a run's last 3 evaluations. SD for planning: the larger of the PEBBLE seeds' SD and 25% of
 their mean. Effect: half the paper's relative gain (+70%), i.e. +35% of PEBBLE's pilot mean. Test: one-tailed Welch at
@@ -8,12 +9,14 @@ alpha 0.05, power from the noncentral t (equal n and SD, df = 2n - 2).
 """
 import glob
 import os
+import sys
 
 import numpy as np
 from scipy import stats
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-PILOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "cheetah-pilot")
+STUDY = os.path.dirname(os.path.abspath(__file__))
+PILOT = os.path.join(STUDY, "..", "cheetah-pilot")
 LAST, ALPHA, TARGET, CAP, FLOOR = 3, 0.05, 0.80, 12, 8  # CAP: the most seeds per arm this project's CPU affords
 
 
@@ -32,7 +35,34 @@ def power(d, n):
     return 1 - stats.nct.cdf(tcrit, df, d * np.sqrt(n / 2))
 
 
+def detectable(sd, n):
+    """The smallest effect (whole points) a one-tailed Welch test at `n` per arm detects with 80% power at this SD."""
+    return next(e for e in np.arange(1.0, 10 * sd) if power(e / sd, n) >= TARGET)
+
+
+def achieved(planned_effect, planned_sd):
+    """The study's achieved power, with the SD it observed: read only once every PbRL run of the protocol is in."""
+    arms = {}
+    for method in ("pebble", "r2n_pebble"):
+        folders = sorted(glob.glob(os.path.join(STUDY, f"{method}__*__seed*")))
+        finished = [d for d in folders if os.path.exists(os.path.join(d, "done"))]
+        if len(finished) < FLOOR:
+            raise SystemExit(f"power.py --achieved: {len(finished)} of {FLOOR} {method} runs are in; the protocol reads "
+                             "the study only when all are")
+        arms[method] = np.array([curve(d)[1][-LAST:].mean() for d in finished])
+    sds = {method: values.std(ddof=1) for method, values in arms.items()}
+    pooled = np.sqrt(np.mean([sd**2 for sd in sds.values()]))
+    n = min(len(values) for values in arms.values())
+    print("observed SD of the primary metric: " + ", ".join(f"{m} {sd:.1f}" for m, sd in sds.items()) +
+          f"; pooled {pooled:.1f} (planned: {planned_sd})")
+    print(f"power for the planned effect +{planned_effect:.1f} at {n} per arm: {power(planned_effect / pooled, n):.2f}; "
+          f"smallest effect with 80% power: {detectable(pooled, n):.0f} points")
+
+
 if __name__ == "__main__":
+    if sys.argv[1:] == ["--achieved"]:
+        achieved(planned_effect=79.4, planned_sd=60.6)  # PROTOCOL.md's, from the pilot (printed without the flag)
+        raise SystemExit
     runs = {os.path.basename(d): curve(d) for d in sorted(glob.glob(os.path.join(PILOT, "*__seed*")))}
     for name, (steps, values) in runs.items():
         at = {s: round(float(values[steps <= s][-LAST:].mean()), 1) for s in (150_000, 200_000, int(steps[-1]))}
@@ -48,6 +78,6 @@ if __name__ == "__main__":
     print(f"PEBBLE pilot mean {pebble.mean():.1f}, seed SD {pebble.std(ddof=1):.1f}, planning SD {sd:.1f}")
     print(f"effect +35% = {effect:.1f}, d = {d:.2f}; 80% power needs {needed} per arm; chosen {chosen} per arm, "
           f"power {power(d, chosen):.2f}")
-    detectable = next(e for e in np.arange(1.0, 10 * sd) if power(e / sd, chosen) >= TARGET)
-    print(f"smallest effect with 80% power at {chosen} per arm: {detectable:.0f} points "
-          f"({100 * detectable / pebble.mean():.0f}% of the pilot mean)")
+    smallest = detectable(sd, chosen)
+    print(f"smallest effect with 80% power at {chosen} per arm: {smallest:.0f} points "
+          f"({100 * smallest / pebble.mean():.0f}% of the pilot mean)")
