@@ -13,10 +13,11 @@ Choices where the issue is silent:
   with code 0 (a failure writes `{run_id}.failed` with the exit code instead). Finished runs are skipped by the next
   call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
   is cheap, exact, and works for runs whose folder name carries only env, method, seed and time. With a results
-  folder (`--results-dir`, `cpu-study`), a run also counts as finished when `{results_dir}/{run_id}/done` exists:
+  folder (`--results-dir`, `cpu-study`), a run counts as finished only when `{results_dir}/{run_id}/done` exists:
   the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
-  in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra`: a results
-  folder is for one configuration.
+  in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra` nor a preset's
+  scale flags: a results folder is for one configuration, and its `done` files, not the log folder's markers, which
+  the presets at other scales share (`cpu-study` and `imitate` have 6 run ids in common), say what it holds.
 - Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
@@ -304,11 +305,11 @@ def results_dir_of(args: Args) -> Optional[str]:
 
 
 def is_done(run: Run, args: Args) -> bool:
-    """A `.done` marker in the log folder, or a finished run kept in the results folder."""
+    """With a results folder, its copy of the run; else a `.done` marker in the log folder."""
     results = results_dir_of(args)
-    return os.path.exists(marker(args.log_dir, run.run_id, "done")) or (
-        results is not None and os.path.exists(os.path.join(results, run.run_id, "done"))
-    )
+    if results is not None:
+        return os.path.exists(os.path.join(results, run.run_id, "done"))
+    return os.path.exists(marker(args.log_dir, run.run_id, "done"))
 
 
 def git_commit() -> str:
@@ -580,8 +581,7 @@ def main(args: Args) -> int:
         return 0
     os.makedirs(args.log_dir, exist_ok=True)
     if done:
-        print(f"skipping {len(done)} finished runs (markers in {args.log_dir}/"
-              + (f" or {results_dir_of(args)}/" if results_dir_of(args) else "") + "; --force reruns them)")
+        print(f"skipping {len(done)} finished runs ({results_dir_of(args) or args.log_dir}/ says so; --force reruns them)")
     if not todo:
         print("nothing to run")
         return 0

@@ -2,6 +2,7 @@
 preset grids, the local back-end (parallel fake runs, GPU slots, resume, failures, one real tiny pebble.py run) and
 the SLURM back-end through submitit (local executor; a fake `sbatch` for the job script)."""
 import csv
+import dataclasses
 import glob
 import importlib.util
 import json
@@ -545,6 +546,23 @@ def test_slurm_job_script(fake_scripts, tmp_path, monkeypatch, capsys):
                  "#SBATCH --gpus-per-node=1", "#SBATCH --cpus-per-task=2", "#SBATCH --account=rl",
                  "#SBATCH --constraint=a100"):
         assert line in script, line
+
+
+def test_a_study_run_is_finished_only_when_its_results_folder_holds_it(tmp_path, monkeypatch):
+    """Run ids leave out a preset's scale flags (cpu-study and imitate share 6): with a results folder, a run is
+    finished when that folder holds its copy, whatever the log folder's markers say; without one, by its marker."""
+    monkeypatch.chdir(tmp_path)
+    imitate = benchmark.Args(preset="imitate")
+    run = next(r for r in benchmark.expand(imitate) if r.run_id == "pebble__cartpole-swingup__noise0.9__budget400__seed1")
+    assert any(r.run_id == run.run_id for r in benchmark.expand(benchmark.Args(preset="cpu-study")))
+    os.makedirs("logs")
+    open(f"logs/{run.run_id}.done", "w").close()  # the cpu-study's run, in the same log folder
+    args = dataclasses.replace(imitate, results_dir=str(tmp_path / "results"))
+    assert not benchmark.is_done(run, args)
+    os.makedirs(tmp_path / "results" / run.run_id)
+    open(tmp_path / "results" / run.run_id / "done", "w").close()
+    assert benchmark.is_done(run, args)
+    assert benchmark.is_done(run, benchmark.Args(methods=("pebble",)))  # no results folder: the marker
 
 
 @needs_analysis
