@@ -23,8 +23,9 @@ Choices where the issue is silent:
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
   GPU (SLURM sets `CUDA_VISIBLE_DEVICES`), with `--slurm-mem-gb` per run. It returns after submission unless
-  `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself (`--slurm-max-requeues`);
-  a run without a `.done` marker is resubmitted by the next call and resumes from its `state.pt` if it has one.
+  `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself with the runs that did
+  not finish (`--slurm-max-requeues`); a run without a `.done` marker is resubmitted by the next call and resumes
+  from its `state.pt` if it has one.
 - Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
   in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
 - Run folders: every run gets `--run-name {run_id}`, so its folder is `runs/{run_id}` and re-running the sweep
@@ -384,7 +385,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
-        starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s$", log.read(), re.M)]
+        starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", log.read(), re.M)]
     kind = "done" if returncode == 0 else "failed"
     summary = (f"exit code {returncode}\nseconds {sum(starts):.0f} over {len(starts)} start(s)\n"
                f"command {shlex.join(spec['command'])}\n")
@@ -405,32 +406,44 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
 class RunGroup:
     """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)].
     Checkpointable: at the time limit submitit calls `checkpoint`, which has the runs save their `state.pt` (SIGUSR2)
-    and requeues the task, which then resumes them (preempted jobs that SLURM requeues resume the same way)."""
+    and requeues the task with the runs that did not finish, which then resume (preempted jobs that SLURM requeues
+    resume the same way). A run that finished before the signal is recorded, not trained again."""
 
     def __call__(self, specs: list) -> list:
-        self.processes = [(spec, launch(spec)) for spec in specs]
+        self.processes, self.finished = [(spec, launch(spec)) for spec in specs], set()
         results = []
         for spec, process in self.processes:
             returncode = process.wait()
             finish_run(spec, returncode, time.time() - process.started)
+            self.finished.add(spec["run_id"])
             results.append((spec["run_id"], returncode, spec["log"]))
         return results
 
     def checkpoint(self, specs: list):
         import submitit
 
-        for _, process in getattr(self, "processes", []):
+        unrecorded = [(spec, process) for spec, process in getattr(self, "processes", [])
+                      if spec["run_id"] not in self.finished]
+        for _, process in unrecorded:
             if process.poll() is None:
                 process.send_signal(signal.SIGUSR2)
-        for spec, process in getattr(self, "processes", []):
+        started = {spec["run_id"] for spec, _ in getattr(self, "processes", [])}
+        requeued = [spec for spec in specs if spec["run_id"] not in started]  # the signal came before they started
+        for spec, process in unrecorded:
             try:  # the run ends its step, saves its state and exits; not `process.wait()`: this signal handler may
                 # have interrupted `__call__` inside it, holding its lock. WNOWAIT leaves the exit status to that wait.
                 code = os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOWAIT).si_status
             except ChildProcessError:  # already reaped
                 code = process.returncode
-            with open(spec["log"], "a") as log:
-                log.write(f"\n# exit code {code}: stopped at the job's time limit, requeued to resume\n")
-        return submitit.helpers.DelayedSubmission(RunGroup(), specs)  # a fresh one: processes do not pickle
+            if code == 0:  # it finished before the signal reached it: its results are complete
+                finish_run(spec, code, time.time() - process.started)
+                continue
+            with open(spec["log"], "a") as log:  # its seconds count in the `done` file's sum
+                log.write(f"\n# exit code {code} after {time.time() - process.started:.0f} s: stopped at the job's time "
+                          "limit, requeued to resume\n")
+            requeued.append(spec)
+        # a fresh group (processes do not pickle); an empty one when all finished (None would fail the job)
+        return submitit.helpers.DelayedSubmission(RunGroup(), requeued)
 
 
 def spec_of(run: Run, args: Args) -> dict:

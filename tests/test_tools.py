@@ -565,6 +565,35 @@ def test_a_study_run_is_finished_only_when_its_results_folder_holds_it(tmp_path,
     assert benchmark.is_done(run, benchmark.Args(methods=("pebble",)))  # no results folder: the marker
 
 
+@needs_submitit
+def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_path):
+    """At the time limit, `RunGroup.checkpoint` stops the running runs (SIGUSR2) and requeues only them; a run that
+    had already finished, though the job had not yet reaped it, gets its `.done` and is not trained again."""
+    python = sys.executable
+    stops = ("import signal, sys, time; signal.signal(signal.SIGUSR2, lambda *a: sys.exit(1)); "
+             "open('ready', 'w').close(); time.sleep(60)")
+    specs = [dict(run_id=name, command=[python, "-c", code], threads=1, commit="abc", cwd=str(tmp_path / name),
+                  log=str(tmp_path / f"{name}.log"), results=None)
+             for name, code in (("running", stops), ("finished", "open('ready', 'w').close()"))]
+    for spec in specs:
+        os.makedirs(spec["cwd"])
+    group = benchmark.RunGroup()
+    group.processes, group.finished = [(spec, benchmark.launch(spec)) for spec in specs], set()  # as `__call__` does
+    deadline = time.time() + 30
+    while not all(os.path.exists(os.path.join(spec["cwd"], "ready")) for spec in specs) and time.time() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)  # the finished run has exited; `__call__` would still be waiting for the first one
+    delayed = group.checkpoint(specs)
+    assert [spec["run_id"] for spec in delayed.args[0]] == ["running"]
+    assert open(tmp_path / "finished.done").read().startswith("exit code 0\nseconds ")
+    assert not os.path.exists(tmp_path / "running.done")
+    assert "stopped at the job's time limit, requeued to resume" in open(tmp_path / "running.log").read()
+    group.processes[0][1].wait(timeout=30)
+    benchmark.finish_run(specs[0], 0, 7.0)  # the requeued start ends: the seconds of both starts add up
+    first = float(re.search(r"exit code 1 after (\d+) s", open(tmp_path / "running.log").read()).group(1))
+    assert f"seconds {first + 7:.0f} over 2 start(s)" in open(tmp_path / "running.done").read()
+
+
 @needs_analysis
 def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch, capsys):
     """One tiny real pebble.py run (TINY from test_scripts) launched by benchmark.py, then read by analyze.py."""
