@@ -330,9 +330,11 @@ def git_commit() -> str:
 RESUMED = "\n# resumed from its state.pt\n"
 
 
-def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
+def launch(spec: dict, gpu: Optional[str] = None, own_session: bool = False) -> subprocess.Popen:
     """Start one run, or resume it when its folder `runs/{run_id}` holds a `state.pt`: clear its markers, open its log
-    (header: command, GPU, start time; appended to on a resume), return the process."""
+    (header: command, GPU, start time; appended to on a resume), return the process. With `own_session` the run is
+    out of the launcher's process group, so a terminal's Ctrl-C reaches the launcher only, which stops the run with
+    SIGTERM: the run saves its state (on SIGINT it would stop without)."""
     for kind in ("done", "failed"):
         if os.path.exists(spec["log"][:-4] + "." + kind):
             os.remove(spec["log"][:-4] + "." + kind)
@@ -354,7 +356,7 @@ def launch(spec: dict, gpu: Optional[str] = None) -> subprocess.Popen:
                   f"# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         log.flush()
         process = subprocess.Popen(spec["command"], cwd=spec["cwd"], env=env, stdout=log, stderr=subprocess.STDOUT,
-                                   stdin=subprocess.DEVNULL)
+                                   stdin=subprocess.DEVNULL, start_new_session=own_session)
     process.started = time.time()
     return process
 
@@ -477,13 +479,14 @@ def run_local(runs: list, args: Args) -> list:
     pending, active, results = deque(runs), {}, []
     print(f"running {len(runs)} runs, {workers} at a time" + (f" on GPUs {','.join(gpus)} "
           f"({args.runs_per_gpu} per GPU)" if gpus else ""), flush=True)
-    previous = signal.signal(signal.SIGTERM, interrupt)  # `kill` stops the sweep as Ctrl-C does
+    # `kill` and a closed terminal stop the sweep as Ctrl-C does (the runs, in sessions of their own, get neither)
+    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGTERM, signal.SIGHUP)}
     try:
         while pending or active:
             while pending and len(active) < workers:
                 run, gpu = pending.popleft(), slots.popleft() if slots is not None else None
                 spec = spec_of(run, args)
-                active[run.run_id] = (spec, launch(spec, gpu), gpu)
+                active[run.run_id] = (spec, launch(spec, gpu, own_session=True), gpu)
                 print(f"started {run.run_id}" + ("" if gpu is None else f" on GPU {gpu}") + f" -> {spec['log']}",
                       flush=True)
             time.sleep(0.05)
@@ -508,7 +511,8 @@ def run_local(runs: list, args: Args) -> list:
         results += [(run.run_id, "not started (interrupted)", "") for run in pending]
         print("interrupted: running runs terminated (they save their state: the same command resumes them)", flush=True)
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     return results
 
 

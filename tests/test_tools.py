@@ -493,6 +493,34 @@ def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
     assert "# 6 runs, 4 already finished, 2 to run" in output
 
 
+def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
+    """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
+    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
+    scripts, work = tmp_path / "scripts", tmp_path / "work"
+    scripts.mkdir()
+    work.mkdir()
+    (scripts / "pebble.py").write_text(
+        "import signal, sys, time\n"
+        "def stop(signum, frame):\n"
+        "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
+        "    sys.exit(1)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "open('ready', 'w').close()\n"
+        "time.sleep(60)\n")
+    launcher = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
+         "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)  # a process group of its own, as a shell gives a foreground job
+    deadline = time.time() + 60
+    while not (work / "ready").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    os.killpg(launcher.pid, signal.SIGINT)  # what the terminal does
+    output = launcher.communicate(timeout=60)[0]
+    assert "interrupted: running runs terminated" in output, output
+    log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
+    assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
+
+
 def test_cli_exit_code_and_no_gpus(fake_scripts):
     """The command line: without --gpus, CUDA_VISIBLE_DEVICES is left alone; a failed run makes the exit code 1."""
     env = dict(os.environ, FAKE_SLEEP="0", CUDA_VISIBLE_DEVICES="7")
