@@ -383,21 +383,25 @@ def numerics_of(command: tuple) -> str:
 
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker, whose `seconds` add up the
-    starts of a resumed run (each start's time is in its log)."""
+    starts of a resumed run (each start's time is in its log). With a results folder, copy the run there; a run that
+    left no event file has nothing to keep and counts as failed."""
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
         starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", log.read(), re.M)]
-    kind = "done" if returncode == 0 else "failed"
-    summary = (f"exit code {returncode}\nseconds {sum(starts):.0f} over {len(starts)} start(s)\n"
+    events = glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*"))
+    kept = events or not spec["results"]  # a study's run is what its event files hold
+    kind = "done" if returncode == 0 and kept else "failed"
+    summary = (f"exit code {returncode}{'' if kept else ', no event file'}\n"
+               f"seconds {sum(starts):.0f} over {len(starts)} start(s)\n"
                f"command {shlex.join(spec['command'])}\n")
     command = tuple(spec["command"])
     summary += f"git commit {spec['commit']}\ndevice {device_of(command)}\nnumerics {numerics_of(command)}\n"
-    if spec["results"] and returncode == 0:  # keep the event file and the log; the `done` files come last
+    if spec["results"] and kind == "done":  # keep the event files and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
         os.makedirs(spec["results"])
-        for events in glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*")):
-            shutil.copy2(events, spec["results"])
+        for path in events:
+            shutil.copy2(path, spec["results"])
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
         with open(os.path.join(spec["results"], "done"), "w") as f:
             f.write(summary)

@@ -493,6 +493,21 @@ def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
     assert "# 6 runs, 4 already finished, 2 to run" in output
 
 
+def test_a_study_run_without_an_event_file_is_not_kept(tmp_path):
+    """With a results folder, an exit code 0 is not enough: a run that left no event file is marked failed, and its
+    results folder gets no `done` file (which would count it as finished for good)."""
+    spec = dict(run_id="r", command=["python", "pebble.py"], threads=1, commit="abc", cwd=str(tmp_path / "scratch"),
+                log=str(tmp_path / "r.log"), results=str(tmp_path / "results" / "r"))
+    os.makedirs(os.path.join(spec["cwd"], "runs", "r"))
+    open(spec["log"], "w").close()
+    benchmark.finish_run(spec, 0, 1.0)
+    assert open(tmp_path / "r.failed").read().startswith("exit code 0, no event file\n")
+    assert not os.path.exists(tmp_path / "r.done") and not os.path.exists(tmp_path / "results" / "r" / "done")
+    SummaryWriter(os.path.join(spec["cwd"], "runs", "r")).close()  # now it has one
+    benchmark.finish_run(spec, 0, 1.0)
+    assert os.path.exists(tmp_path / "r.done") and os.path.exists(tmp_path / "results" / "r" / "done")
+
+
 def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
     """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
     only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
