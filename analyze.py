@@ -440,6 +440,9 @@ def table_rows(groups, args: Args) -> list:
         row = dict(task=task, noise=noise, budget=budget, method=method, seeds=len(g.runs),
                    seed_list=" ".join(str(r.seed) for r in g.runs), last_step=int(g.steps[-1]),
                    eval_points=len(g.steps), baseline="", notes=list(g.notes))
+        if len(g.steps) < args.primary_last:  # unfinished runs aligned on fewer evaluations than the metric asks
+            row["notes"].append(f"primary metric over its {len(g.steps)} evaluations, fewer than --primary-last "
+                                f"{args.primary_last}")
         for metric in METRICS:
             row[f"{metric}_mean"], row[f"{metric}_se"] = mean_se(g.values(metric, args.primary_last))
             row[f"{metric}_p"] = row[f"{metric}_perm_p"] = row[f"{metric}_diff"] = float("nan")

@@ -287,6 +287,12 @@ def test_unfinished_runs_align_on_common_steps(synthetic, tmp_path):
     runs = {os.path.dirname(r["path"]): r for r in read_csv(tmp_path / "runs.csv")}
     assert runs[os.path.abspath(bad["crashed"])]["status"] == "skipped"  # a crashed run is never used
     assert not os.path.exists(tmp_path / "curves")
+    # a primary metric asked over more evaluations than the aligned group has says so
+    assert "--primary-last" not in row["notes"]
+    assert analyze.main(analyze.Args(log_dirs=synthetic["dirs"], output_dir=str(tmp_path / "last4"), plots=False,
+                                     include_unfinished=True, primary_last=4)) == 0
+    row = {(r["task"], r["method"]): r for r in read_csv(tmp_path / "last4" / "primary.csv")}[("cheetah-run", "pebble")]
+    assert "primary metric over its 3 evaluations, fewer than --primary-last 4" in row["notes"], row["notes"]
 
 
 @needs_analysis
