@@ -21,6 +21,7 @@ Choices where the issue is silent:
 - Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
+  One local launcher per log folder (a lock on `{log_dir}/.launcher.lock`): a second would run the same runs again.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
   GPU (SLURM sets `CUDA_VISIBLE_DEVICES`), with `--slurm-mem-gb` per run. It returns after submission unless
   `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself with the runs that did
@@ -32,6 +33,7 @@ Choices where the issue is silent:
   resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
+import fcntl
 import glob
 import os
 import re
@@ -473,8 +475,25 @@ def describe(returncode: int) -> str:
 # ---------------------------------------------------------------- back-ends
 
 
+def lock_log_dir(log_dir: str):
+    """One local launcher per log folder: a second would start the same runs again, into the same folders. The lock
+    is the kernel's, held until this process ends (a killed launcher leaves none behind). Returns the locked file."""
+    lock = open(os.path.join(log_dir, ".launcher.lock"), "a+")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        fail(f"another benchmark.py is running runs in {log_dir}/ ({lock.read().strip() or 'pid unknown'}); wait for "
+             "it to end, stop it, or give this one another --log-dir")
+    lock.truncate(0)
+    lock.write(f"pid {os.getpid()}\n")
+    lock.flush()
+    return lock
+
+
 def run_local(runs: list, args: Args) -> list:
     """A pool of at most `workers` processes; GPU slots round-robin. Returns [(run_id, exit code, log)]."""
+    lock = lock_log_dir(args.log_dir)  # noqa: F841 (held while the runs run)
     gpus = [g.strip() for g in args.gpus.split(",") if g.strip()] if args.gpus else []
     slots = deque(g for _ in range(args.runs_per_gpu) for g in gpus) if gpus else None
     workers = args.workers or (len(slots) if slots else 1)

@@ -542,6 +542,20 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
     assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
 
 
+def test_one_local_launcher_per_log_folder(fake_scripts, monkeypatch):
+    """A second launcher in the same log folder would start the same runs into the same folders: it stops with one
+    line naming the first one's pid, and can go once the first has ended."""
+    monkeypatch.setenv("FAKE_SLEEP", "0")
+    os.makedirs("logs")
+    first = benchmark.lock_log_dir("logs")  # as a first launcher holds it
+    args = benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), seeds=(1,), script_dir=fake_scripts)
+    with pytest.raises(SystemExit, match=f"another benchmark.py is running runs in logs/ \\(pid {os.getpid()}\\)"):
+        benchmark.main(args)
+    assert not os.path.exists("logs/pebble__cheetah-run__noise0.9__budget1000__seed1.log")  # nothing started
+    first.close()  # the first launcher ends
+    assert benchmark.main(args) == 0
+
+
 def test_cli_exit_code_and_no_gpus(fake_scripts):
     """The command line: without --gpus, CUDA_VISIBLE_DEVICES is left alone; a failed run makes the exit code 1."""
     env = dict(os.environ, FAKE_SLEEP="0", CUDA_VISIBLE_DEVICES="7")
