@@ -525,12 +525,18 @@ def run_local(runs: list, args: Args) -> list:
                     slots.append(gpu)
                 print(f"{'finished' if returncode == 0 else 'FAILED'} {run_id} ({describe(returncode)}, {seconds:.0f} s)",
                       flush=True)
-    except KeyboardInterrupt:
-        for run_id, (spec, process, _) in active.items():
+    except BaseException as error:  # Ctrl-C, `kill`, or the launcher's own failure: no run is left running untracked
+        for _, process, _ in active.values():
             process.terminate()
+        for run_id, (spec, process, _) in active.items():
             returncode = process.wait()
-            finish_run(spec, returncode, time.time() - process.started)
+            try:  # each run's marker, even if another's cannot be written (the error that ended the sweep, again)
+                finish_run(spec, returncode, time.time() - process.started)
+            except OSError as e:
+                print(f"{run_id}: {describe(returncode)}, its marker not written ({e})", flush=True)
             results.append((run_id, returncode, spec["log"]))
+        if not isinstance(error, KeyboardInterrupt):
+            raise
         results += [(run.run_id, "not started (interrupted)", "") for run in pending]
         print("interrupted: running runs terminated (they save their state: the same command resumes them)", flush=True)
     finally:

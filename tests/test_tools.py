@@ -556,6 +556,37 @@ def test_one_local_launcher_per_log_folder(fake_scripts, monkeypatch):
     assert benchmark.main(args) == 0
 
 
+def test_a_failing_launcher_stops_its_runs_first(tmp_path, monkeypatch):
+    """If the launcher itself fails (here: writing a run's marker), it stops the other runs with SIGTERM (they save
+    their state) before the error ends it: no run goes on untracked, to be started a second time by the next call."""
+    scripts, work = tmp_path / "scripts", tmp_path / "work"
+    scripts.mkdir()
+    work.mkdir()
+    monkeypatch.chdir(work)
+    (scripts / "pebble.py").write_text(
+        "import signal, sys, time\n"
+        "def stop(signum, frame):\n"
+        "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
+        "    sys.exit(1)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "time.sleep(0 if sys.argv[sys.argv.index('--seed') + 1] == '1' else 60)\n")
+    finish_run = benchmark.finish_run
+
+    def disk_full_once(spec, returncode, seconds):
+        if spec["run_id"].endswith("seed1"):
+            raise OSError(28, "No space left on device")
+        finish_run(spec, returncode, seconds)
+
+    monkeypatch.setattr(benchmark, "finish_run", disk_full_once)
+    args = benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), seeds=(1, 2), workers=2,
+                          script_dir=str(scripts))
+    with pytest.raises(OSError, match="No space left on device"):
+        benchmark.main(args)
+    log = open("logs/pebble__cheetah-run__noise0.9__budget1000__seed2.log").read()
+    assert "state saved on SIGTERM" in log and "# exit code 1 after" in log, log
+    assert os.path.exists("logs/pebble__cheetah-run__noise0.9__budget1000__seed2.failed")
+
+
 def test_cli_exit_code_and_no_gpus(fake_scripts):
     """The command line: without --gpus, CUDA_VISIBLE_DEVICES is left alone; a failed run makes the exit code 1."""
     env = dict(os.environ, FAKE_SLEEP="0", CUDA_VISIBLE_DEVICES="7")
