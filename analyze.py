@@ -411,6 +411,20 @@ def bootstrap_ci(a, b, resamples: int = BOOTSTRAP_RESAMPLES, level: float = 0.95
     return float(low), float(high)
 
 
+def power(effect: float, sd: float, n: int, alpha: float = 0.05) -> float:
+    """Power of the one-tailed test of a difference `effect` at `n` seeds per arm and a common SD: the noncentral t
+    with df = 2n - 2 (the studies' planning approximation of Welch's test)."""
+    from scipy import stats
+
+    df = 2 * n - 2
+    return float(1 - stats.nct.cdf(stats.t.ppf(1 - alpha, df), df, effect / sd * math.sqrt(n / 2)))
+
+
+def smallest_detectable(sd: float, n: int, target: float = 0.80, alpha: float = 0.05) -> int:
+    """The smallest effect, in whole points, that `power` reaches `target` for at `n` per arm and this SD."""
+    return next(effect for effect in itertools.count(1) if power(effect, sd, n, alpha) >= target)
+
+
 def order_key(task, noise, budget, method, baseline):
     """Paper's task order, then noise and budget ascending; the baseline first, then the paper's method order."""
     task_rank = PAPER_TASKS.index(task) if task in PAPER_TASKS else len(PAPER_TASKS)

@@ -973,13 +973,62 @@ def test_cheetah_power_achieved_is_read_only_when_the_study_is_complete(tmp_path
             if not (method == "r2n_pebble" and seed == 8):
                 (folder / "done").write_text("exit code 0\n")
     command = [sys.executable, str(script), "--achieved"]
-    refused = subprocess.run(command, capture_output=True, text=True)
+    env = dict(os.environ, PYTHONPATH=ROOT)  # the repository's analyze.py, which the copy imports
+    refused = subprocess.run(command, capture_output=True, text=True, env=env)
     assert refused.returncode != 0 and "7 of 8 r2n_pebble runs are in" in refused.stderr, refused.stderr
     (study / "r2n_pebble__cheetah-run__noise0.9__budget1000__seed8" / "done").write_text("exit code 0\n")
-    result = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+    result = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
     pooled = math.sqrt((np.var(primary["pebble"], ddof=1) + np.var(primary["r2n_pebble"], ddof=1)) / 2)
     power = lambda effect: 1 - stats.nct.cdf(stats.t.ppf(0.95, 14), 14, effect / pooled * 2)  # d * sqrt(n / 2)
     smallest = next(effect for effect in range(1, 1000) if power(effect) >= 0.8)
     assert f"pooled {pooled:.1f}" in result, result
     assert f"power for the planned effect +79.4 at 8 per arm: {power(79.4):.2f}" in result, result
     assert f"smallest effect with 80% power: {smallest} points" in result, result
+
+
+def test_power_and_smallest_detectable_effect_against_scipy():
+    """`analyze.power`: the noncentral t of a one-tailed test at n per arm, df = 2n - 2, computed here from scipy's
+    distributions; `smallest_detectable`: the first whole effect with at least 80% power."""
+    from scipy import stats
+
+    for effect, sd, n in ((79.4, 60.6, 8), (212.5, 180.9, 8), (10.0, 50.0, 3)):
+        ncp, df = effect / sd * math.sqrt(n / 2), 2 * n - 2
+        assert analyze.power(effect, sd, n) == pytest.approx(1 - stats.nct.cdf(stats.t.ppf(0.95, df), df, ncp), rel=1e-9)
+    smallest = analyze.smallest_detectable(60.6, 8)
+    assert analyze.power(smallest, 60.6, 8) >= 0.8 > analyze.power(smallest - 1, 60.6, 8)
+    assert smallest == 80  # the cheetah study's PROTOCOL.md
+
+
+@needs_analysis
+def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_complete(tmp_path):
+    """results/early-stop/power.py prints PROTOCOL.md's numbers from the committed cpu-study runs; `--achieved`
+    refuses until all 16 runs are in, then gives each test's power at its observed pooled SD."""
+    script = os.path.join(ROOT, "results", "early-stop", "power.py")
+    plain = subprocess.run([sys.executable, script], capture_output=True, text=True, check=True).stdout
+    for quoted in ("planning SD (pooled, main arms) 180.9; lead +212.5, d = 1.17, power 0.72 at 8 per arm",
+                   "power 0.30; 80% power needs 37 per arm", "at 8 per arm: 237 points", "96.9: 127 points"):
+        assert quoted in plain, plain
+    # a copy beside synthetic runs: the cpu-study's arms, then the study's seeds 9-16, the last one missing at first
+    study, cpu = tmp_path / "results" / "early-stop", tmp_path / "results" / "cpu-study"
+    study.mkdir(parents=True)
+    (study / "power.py").write_text(open(script).read())
+    rng = np.random.default_rng(0)
+    for method, seeds in (("pebble", range(1, 9)), ("r2n_pebble", range(1, 9)), ("pebble_no_early_stop", range(1, 4)),
+                          ("r2n_pebble_no_early_stop", range(1, 4))):
+        for seed in seeds:
+            write_run(str(cpu), "cartpole-swingup", 0.9, 400, method, seed, values(rng, 5, 100))
+    primary = {}
+    for method in ("pebble_no_early_stop", "r2n_pebble_no_early_stop"):
+        for seed in range(9, 17 if method == "pebble_no_early_stop" else 16):
+            returns = values(rng, 5, 150)
+            primary.setdefault(method, []).append(returns[-3:].mean())
+            write_run(str(study), "cartpole-swingup", 0.9, 400, method, seed, returns)
+    command, env = [sys.executable, str(study / "power.py"), "--achieved"], dict(os.environ, PYTHONPATH=ROOT)
+    refused = subprocess.run(command, capture_output=True, text=True, env=env)
+    assert refused.returncode != 0 and "'r2n_pebble_no_early_stop': 7} runs of 8 per arm are in" in refused.stderr
+    returns = values(rng, 5, 150)
+    primary["r2n_pebble_no_early_stop"].append(returns[-3:].mean())
+    write_run(str(study), "cartpole-swingup", 0.9, 400, "r2n_pebble_no_early_stop", 16, returns)
+    result = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
+    sd = math.sqrt((np.var(primary["pebble_no_early_stop"], ddof=1) + np.var(primary["r2n_pebble_no_early_stop"], ddof=1)) / 2)
+    assert f"H1: observed pooled SD {sd:.1f}; " in result and "H2: observed pooled SD" in result, result

@@ -12,11 +12,12 @@ import os
 import sys
 
 import numpy as np
-from scipy import stats
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 STUDY = os.path.dirname(os.path.abspath(__file__))
 PILOT = os.path.join(STUDY, "..", "cheetah-pilot")
+sys.path.insert(0, os.path.join(STUDY, "..", ".."))
+import analyze  # noqa: E402 (the repository's: its power calculation)
 LAST, ALPHA, TARGET, CAP, FLOOR = 3, 0.05, 0.80, 12, 8  # CAP: the most seeds per arm this project's CPU affords
 
 
@@ -31,13 +32,7 @@ def curve(run_dir):
 
 
 def power(d, n):
-    df, tcrit = 2 * n - 2, stats.t.ppf(1 - ALPHA, 2 * n - 2)
-    return 1 - stats.nct.cdf(tcrit, df, d * np.sqrt(n / 2))
-
-
-def detectable(sd, n):
-    """The smallest effect (whole points) a one-tailed Welch test at `n` per arm detects with 80% power at this SD."""
-    return next(e for e in np.arange(1.0, 10 * sd) if power(e / sd, n) >= TARGET)
+    return analyze.power(d, 1.0, n, ALPHA)
 
 
 def achieved(planned_effect, planned_sd):
@@ -56,7 +51,7 @@ def achieved(planned_effect, planned_sd):
     print("observed SD of the primary metric: " + ", ".join(f"{m} {sd:.1f}" for m, sd in sds.items()) +
           f"; pooled {pooled:.1f} (planned: {planned_sd})")
     print(f"power for the planned effect +{planned_effect:.1f} at {n} per arm: {power(planned_effect / pooled, n):.2f}; "
-          f"smallest effect with 80% power: {detectable(pooled, n):.0f} points")
+          f"smallest effect with 80% power: {analyze.smallest_detectable(pooled, n):.0f} points")
 
 
 if __name__ == "__main__":
@@ -78,6 +73,6 @@ if __name__ == "__main__":
     print(f"PEBBLE pilot mean {pebble.mean():.1f}, seed SD {pebble.std(ddof=1):.1f}, planning SD {sd:.1f}")
     print(f"effect +35% = {effect:.1f}, d = {d:.2f}; 80% power needs {needed} per arm; chosen {chosen} per arm, "
           f"power {power(d, chosen):.2f}")
-    smallest = detectable(sd, chosen)
+    smallest = analyze.smallest_detectable(sd, chosen)
     print(f"smallest effect with 80% power at {chosen} per arm: {smallest:.0f} points "
           f"({100 * smallest / pebble.mean():.0f}% of the pilot mean)")
