@@ -422,6 +422,8 @@ def power(effect: float, sd: float, n: int, alpha: float = 0.05) -> float:
 
 def smallest_detectable(sd: float, n: int, target: float = 0.80, alpha: float = 0.05) -> int:
     """The smallest effect, in whole points, that `power` reaches `target` for at `n` per arm and this SD."""
+    if not (math.isfinite(sd) and sd > 0 and n >= 2):  # else no effect is ever detectable: the search would not end
+        raise ValueError(f"smallest_detectable needs a finite SD > 0 and n >= 2, got SD {sd} and n {n}")
     return next(effect for effect in itertools.count(1) if power(effect, sd, n, alpha) >= target)
 
 

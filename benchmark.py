@@ -22,17 +22,20 @@ Choices where the issue is silent:
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
   One local launcher per log folder (a lock on `{log_dir}/.launcher.lock`): a second would run the same runs again.
+  Local runs are in sessions of their own: Ctrl-C, SIGTERM or SIGHUP reach the launcher only, which stops them with
+  SIGTERM (they save their state), and on Linux they get SIGTERM when the launcher dies, however it dies.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
   GPU (SLURM sets `CUDA_VISIBLE_DEVICES`), with `--slurm-mem-gb` per run. It returns after submission unless
-  `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself with the runs that did
-  not finish (`--slurm-max-requeues`); a run without a `.done` marker is resubmitted by the next call and resumes
-  from its `state.pt` if it has one.
+  `--slurm-wait`. A job at its time limit has its runs save their state and requeues itself with the runs still
+  going (`--slurm-max-requeues`); a run without a `.done` marker is resubmitted by the next call and resumes from its
+  `state.pt` if it has one.
 - Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
   in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
 - Run folders: every run gets `--run-name {run_id}`, so its folder is `runs/{run_id}` and re-running the sweep
   resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
+import ctypes
 import fcntl
 import glob
 import os
@@ -358,12 +361,20 @@ def launch(spec: dict, gpu: Optional[str] = None, own_session: bool = False) -> 
                   f"# started {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
         log.flush()
         process = subprocess.Popen(spec["command"], cwd=spec["cwd"], env=env, stdout=log, stderr=subprocess.STDOUT,
-                                   stdin=subprocess.DEVNULL, start_new_session=own_session)
+                                   stdin=subprocess.DEVNULL, start_new_session=own_session,
+                                   preexec_fn=stop_with_launcher if own_session and sys.platform == "linux" else None)
     process.started = time.time()
     return process
 
 
-# the scripts' flags that change floating-point results; runs that differ in them are never compared (analyze.py)
+def stop_with_launcher():
+    """In a run's process before its script starts: SIGTERM (a state, then exit) when the launcher dies, however it
+    dies (SIGKILL too), so that no run out of the launcher's process group goes on untracked. Linux's prctl."""
+    ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))  # 1: PR_SET_PDEATHSIG
+
+
+# the scripts' numerics flags, named in each `done` file: `--compile` and `--tf32` change floating-point results (analyze.py
+# never compares runs that differ in them); `--cuda-graph` gives eager's numbers on its GPU
 NUMERICS_FLAGS = ("--compile", "--tf32", "--cuda-graph")
 
 
@@ -412,46 +423,56 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
 
 
 class RunGroup:
-    """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)].
-    Checkpointable: at the time limit submitit calls `checkpoint`, which has the runs save their `state.pt` (SIGUSR2)
-    and requeues the task with the runs that did not finish, which then resume (preempted jobs that SLURM requeues
-    resume the same way). A run that finished before the signal is recorded, not trained again."""
+    """A SLURM array task: run its specs at once (they share the job's GPU), return [(run_id, exit code, log)], those
+    of earlier starts of the task included. Checkpointable: at the time limit submitit calls `checkpoint`, which has
+    the runs save their `state.pt` (SIGUSR2) and requeues the task with the runs still going, which then resume
+    (preempted jobs that SLURM requeues resume the same way). A run that ended before the signal is recorded as it
+    ended (each is recorded when it ends, not in order), not started again."""
+
+    def __init__(self, earlier: tuple = ()):
+        self.earlier = list(earlier)  # the results of the runs that ended in earlier starts of this task
 
     def __call__(self, specs: list) -> list:
-        self.processes, self.finished = [(spec, launch(spec)) for spec in specs], set()
-        results = []
-        for spec, process in self.processes:
-            returncode = process.wait()
-            finish_run(spec, returncode, time.time() - process.started)
-            self.finished.add(spec["run_id"])
-            results.append((spec["run_id"], returncode, spec["log"]))
-        return results
+        self.finished, self.results = set(), list(self.earlier)
+        self.processes = [(spec, launch(spec)) for spec in specs]
+        while len(self.finished) < len(self.processes):
+            time.sleep(1)
+            for spec, process in self.processes:
+                if spec["run_id"] not in self.finished and process.poll() is not None:
+                    self.record(spec, process.returncode, time.time() - process.started)
+        return self.results
+
+    def record(self, spec: dict, returncode: int, seconds: float):
+        self.finished.add(spec["run_id"])
+        finish_run(spec, returncode, seconds)
+        self.results.append((spec["run_id"], returncode, spec["log"]))
 
     def checkpoint(self, specs: list):
         import submitit
 
-        unrecorded = [(spec, process) for spec, process in getattr(self, "processes", [])
-                      if spec["run_id"] not in self.finished]
-        for _, process in unrecorded:
+        processes = getattr(self, "processes", [])
+        going = [(spec, process) for spec, process in processes if spec["run_id"] not in self.finished]
+        for _, process in going:
             if process.poll() is None:
                 process.send_signal(signal.SIGUSR2)
-        started = {spec["run_id"] for spec, _ in getattr(self, "processes", [])}
+        started = {spec["run_id"] for spec, _ in processes}
         requeued = [spec for spec in specs if spec["run_id"] not in started]  # the signal came before they started
-        for spec, process in unrecorded:
+        for spec, process in going:
             try:  # the run ends its step, saves its state and exits; not `process.wait()`: this signal handler may
-                # have interrupted `__call__` inside it, holding its lock. WNOWAIT leaves the exit status to that wait.
+                # have interrupted `__call__` inside `poll`, holding its lock. WNOWAIT leaves the exit status there.
                 code = os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOWAIT).si_status
             except ChildProcessError:  # already reaped
                 code = process.returncode
-            if code == 0:  # it finished before the signal reached it: its results are complete
-                finish_run(spec, code, time.time() - process.started)
+            if code == 0:  # it finished as the signal came: its results are complete
+                self.record(spec, code, time.time() - process.started)
                 continue
             with open(spec["log"], "a") as log:  # its seconds count in the `done` file's sum
                 log.write(f"\n# exit code {code} after {time.time() - process.started:.0f} s: stopped at the job's time "
                           "limit, requeued to resume\n")
             requeued.append(spec)
-        # a fresh group (processes do not pickle); an empty one when all finished (None would fail the job)
-        return submitit.helpers.DelayedSubmission(RunGroup(), requeued)
+        # a fresh group (processes do not pickle) that reports the runs recorded so far too; an empty one when all
+        # have ended (returning None would fail the job)
+        return submitit.helpers.DelayedSubmission(RunGroup(getattr(self, "results", self.earlier)), requeued)
 
 
 def spec_of(run: Run, args: Args) -> dict:
@@ -502,8 +523,13 @@ def run_local(runs: list, args: Args) -> list:
     pending, active, results = deque(runs), {}, []
     print(f"running {len(runs)} runs, {workers} at a time" + (f" on GPUs {','.join(gpus)} "
           f"({args.runs_per_gpu} per GPU)" if gpus else ""), flush=True)
-    # `kill` and a closed terminal stop the sweep as Ctrl-C does (the runs, in sessions of their own, get neither)
-    previous = {signum: signal.signal(signum, interrupt) for signum in (signal.SIGTERM, signal.SIGHUP)}
+    # `kill` and a closed terminal stop the sweep as Ctrl-C does (the runs, in sessions of their own, get neither);
+    # a signal the launcher was started ignoring (`nohup`) stays ignored
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    previous = {signum: signal.getsignal(signum) for signum in stops}
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        if previous[signum] is not signal.SIG_IGN:
+            signal.signal(signum, interrupt)
     try:
         while pending or active:
             while pending and len(active) < workers:
@@ -518,14 +544,18 @@ def run_local(runs: list, args: Args) -> list:
                 if returncode is None:
                     continue
                 seconds = time.time() - process.started
+                del active[run_id]  # first: if recording it fails, the cleanup below does not record it again
                 finish_run(spec, returncode, seconds)
                 results.append((run_id, returncode, spec["log"]))
-                del active[run_id]
                 if slots is not None:
                     slots.append(gpu)
                 print(f"{'finished' if returncode == 0 else 'FAILED'} {run_id} ({describe(returncode)}, {seconds:.0f} s)",
                       flush=True)
     except BaseException as error:  # Ctrl-C, `kill`, or the launcher's own failure: no run is left running untracked
+        for signum in stops:  # a second Ctrl-C would cut the cleanup short while the runs write their states
+            signal.signal(signum, signal.SIG_IGN)
+        if active:
+            print(f"stopping {len(active)} runs: they save their state (further Ctrl-C ignored)", flush=True)
         for _, process, _ in active.values():
             process.terminate()
         for run_id, (spec, process, _) in active.items():

@@ -531,12 +531,17 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
     launcher = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
          "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)  # a process group of its own, as a shell gives a foreground job
-    deadline = time.time() + 60
-    while not (work / "ready").exists() and time.time() < deadline:
-        time.sleep(0.05)
-    os.killpg(launcher.pid, signal.SIGINT)  # what the terminal does
-    output = launcher.communicate(timeout=60)[0]
+        start_new_session=True,  # a process group of its own, as a shell gives a foreground job
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal, however pytest started
+    try:
+        deadline = time.time() + 60
+        while not (work / "ready").exists() and time.time() < deadline:
+            time.sleep(0.05)
+        os.killpg(launcher.pid, signal.SIGINT)  # what the terminal does
+        output = launcher.communicate(timeout=60)[0]
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
     assert "interrupted: running runs terminated" in output, output
     log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
     assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
@@ -564,12 +569,16 @@ def test_a_failing_launcher_stops_its_runs_first(tmp_path, monkeypatch):
     work.mkdir()
     monkeypatch.chdir(work)
     (scripts / "pebble.py").write_text(
-        "import signal, sys, time\n"
+        "import os, signal, sys, time\n"
         "def stop(signum, frame):\n"
         "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
         "    sys.exit(1)\n"
         "signal.signal(signal.SIGTERM, stop)\n"
-        "time.sleep(0 if sys.argv[sys.argv.index('--seed') + 1] == '1' else 60)\n")
+        "if sys.argv[sys.argv.index('--seed') + 1] == '2':\n"
+        "    open('ready', 'w').close()\n"
+        "    time.sleep(60)\n"
+        "while not os.path.exists('ready'):  # seed 1 ends once seed 2 can save its state\n"
+        "    time.sleep(0.01)\n")
     finish_run = benchmark.finish_run
 
     def disk_full_once(spec, returncode, seconds):
@@ -585,6 +594,43 @@ def test_a_failing_launcher_stops_its_runs_first(tmp_path, monkeypatch):
     log = open("logs/pebble__cheetah-run__noise0.9__budget1000__seed2.log").read()
     assert "state saved on SIGTERM" in log and "# exit code 1 after" in log, log
     assert os.path.exists("logs/pebble__cheetah-run__noise0.9__budget1000__seed2.failed")
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="prctl(PR_SET_PDEATHSIG) is Linux's")
+def test_nohup_is_kept_and_runs_stop_with_a_killed_launcher(tmp_path):
+    """A launcher started under `nohup` (SIGHUP ignored) keeps ignoring it; a launcher killed with SIGKILL, which can
+    stop nothing, still takes its runs along: each gets SIGTERM and saves its state, none goes on untracked."""
+    scripts, work = tmp_path / "scripts", tmp_path / "work"
+    scripts.mkdir()
+    work.mkdir()
+    (scripts / "pebble.py").write_text(
+        "import signal, sys, time\n"
+        "def stop(signum, frame):\n"
+        "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
+        "    sys.exit(1)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "open('ready', 'w').close()\n"
+        "time.sleep(60)\n")
+    log = work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log"
+    launcher = subprocess.Popen(
+        [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
+         "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))  # as `nohup` does
+    try:
+        deadline = time.time() + 60
+        while not (work / "ready").exists() and time.time() < deadline:
+            time.sleep(0.05)
+        launcher.send_signal(signal.SIGHUP)  # a closed terminal
+        time.sleep(2)
+        assert launcher.poll() is None and "state saved" not in log.read_text()
+        launcher.kill()
+        deadline = time.time() + 60
+        while "state saved on SIGTERM" not in log.read_text() and time.time() < deadline:
+            time.sleep(0.1)
+        assert "state saved on SIGTERM" in log.read_text()
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
 
 
 def test_cli_exit_code_and_no_gpus(fake_scripts):
@@ -659,10 +705,24 @@ def test_a_study_run_is_finished_only_when_its_results_folder_holds_it(tmp_path,
     assert benchmark.is_done(run, benchmark.Args(methods=("pebble",)))  # no results folder: the marker
 
 
+def test_a_slurm_task_records_each_run_when_it_ends_and_reports_earlier_starts(tmp_path):
+    """`RunGroup` records each run as it ends, not in order (a short run's `done` file has its own seconds, not those
+    of a longer one started before it), and its results start with those of the task's earlier starts."""
+    specs = [dict(run_id=name, command=[sys.executable, "-c", f"import time; time.sleep({sleep})"], threads=1,
+                  commit="abc", cwd=str(tmp_path), log=str(tmp_path / f"{name}.log"), results=None)
+             for name, sleep in (("long", 6), ("short", 0))]
+    earlier = [("before", 1, "before.log")]  # a run that failed in the task's first start
+    results = benchmark.RunGroup(earlier)(specs)
+    assert results == earlier + [("short", 0, specs[1]["log"]), ("long", 0, specs[0]["log"])]
+    seconds = lambda name: int(re.search(r"seconds (\d+) ", open(tmp_path / f"{name}.done").read()).group(1))  # noqa: E731
+    assert seconds("short") < 4 <= seconds("long")
+
+
 @needs_submitit
 def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_path):
     """At the time limit, `RunGroup.checkpoint` stops the running runs (SIGUSR2) and requeues only them; a run that
-    had already finished, though the job had not yet reaped it, gets its `.done` and is not trained again."""
+    had already finished, though the job had not yet seen it, gets its `.done`, is not trained again, and is in the
+    requeued task's results."""
     python = sys.executable
     stops = ("import signal, sys, time; signal.signal(signal.SIGUSR2, lambda *a: sys.exit(1)); "
              "open('ready', 'w').close(); time.sleep(60)")
@@ -672,13 +732,15 @@ def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_p
     for spec in specs:
         os.makedirs(spec["cwd"])
     group = benchmark.RunGroup()
-    group.processes, group.finished = [(spec, benchmark.launch(spec)) for spec in specs], set()  # as `__call__` does
-    deadline = time.time() + 30
-    while not all(os.path.exists(os.path.join(spec["cwd"], "ready")) for spec in specs) and time.time() < deadline:
+    group.finished, group.results = set(), []  # as `__call__` starts
+    group.processes = [(spec, benchmark.launch(spec)) for spec in specs]
+    deadline = time.time() + 60
+    while not os.path.exists(os.path.join(specs[0]["cwd"], "ready")) and time.time() < deadline:
         time.sleep(0.05)
-    time.sleep(0.5)  # the finished run has exited; `__call__` would still be waiting for the first one
+    os.waitid(os.P_PID, group.processes[1][1].pid, os.WEXITED | os.WNOWAIT)  # ended, not yet seen by `__call__`'s poll
     delayed = group.checkpoint(specs)
     assert [spec["run_id"] for spec in delayed.args[0]] == ["running"]
+    assert delayed.function.earlier == [("finished", 0, specs[1]["log"])]  # the requeued task reports it too
     assert open(tmp_path / "finished.done").read().startswith("exit code 0\nseconds ")
     assert not os.path.exists(tmp_path / "running.done")
     assert "stopped at the job's time limit, requeued to resume" in open(tmp_path / "running.log").read()
@@ -997,6 +1059,9 @@ def test_power_and_smallest_detectable_effect_against_scipy():
     smallest = analyze.smallest_detectable(60.6, 8)
     assert analyze.power(smallest, 60.6, 8) >= 0.8 > analyze.power(smallest - 1, 60.6, 8)
     assert smallest == 80  # the cheetah study's PROTOCOL.md
+    for sd, n in ((float("nan"), 8), (0.0, 8), (60.6, 1)):  # no effect is ever detectable: refused, not searched forever
+        with pytest.raises(ValueError, match="smallest_detectable needs a finite SD > 0 and n >= 2"):
+            analyze.smallest_detectable(sd, n)
 
 
 @needs_analysis

@@ -7,6 +7,7 @@ Primary metric: the mean of a run's last 3 evaluations. SD for planning: the lar
 their mean. Effect: half the paper's relative gain (+70%), i.e. +35% of PEBBLE's pilot mean. Test: one-tailed Welch at
 alpha 0.05, power from the noncentral t (equal n and SD, df = 2n - 2).
 """
+import argparse
 import glob
 import os
 import sys
@@ -55,7 +56,9 @@ def achieved(planned_effect, planned_sd):
 
 
 if __name__ == "__main__":
-    if sys.argv[1:] == ["--achieved"]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--achieved", action="store_true", help="the power achieved, once every run of the study is in")
+    if parser.parse_args().achieved:
         achieved(planned_effect=79.4, planned_sd=60.6)  # PROTOCOL.md's, from the pilot (printed without the flag)
         raise SystemExit
     runs = {os.path.basename(d): curve(d) for d in sorted(glob.glob(os.path.join(PILOT, "*__seed*")))}

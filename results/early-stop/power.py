@@ -8,6 +8,7 @@ Primary metric: the mean of a run's last 3 evaluations. Planning SD: the pooled 
 `pebble_no_early_stop` (3 seeds each), and half of it. Test: one-tailed Welch at alpha 0.05, 8 seeds per arm, power
 from the noncentral t (`analyze.power`).
 """
+import argparse
 import os
 import sys
 
@@ -47,13 +48,16 @@ def achieved(lead: float):
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--achieved", action="store_true", help="the power achieved, once every run of the study is in")
+    options = parser.parse_args()
     cpu = primary([os.path.join(HERE, "..", "cpu-study")])
     for method in ("pebble", "r2n_pebble", "pebble_no_early_stop", "r2n_pebble_no_early_stop"):
         values = cpu[method]
         print(f"cpu-study {method}: {len(values)} seeds, mean {values.mean():.1f}, SD {values.std(ddof=1):.1f}")
     sd = pooled_sd(cpu["pebble"], cpu["r2n_pebble"])
     lead = float(cpu["r2n_pebble_no_early_stop"].mean() - cpu["pebble_no_early_stop"].mean())
-    if sys.argv[1:] == ["--achieved"]:
+    if options.achieved:
         achieved(lead)
         raise SystemExit
     print(f"planning SD (pooled, main arms) {sd:.1f}; lead {lead:+.1f}, d = {lead / sd:.2f}, "
