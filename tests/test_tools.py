@@ -514,9 +514,9 @@ def test_a_study_run_without_an_event_file_is_not_kept(tmp_path):
     assert os.path.exists(tmp_path / "r.done") and os.path.exists(tmp_path / "results" / "r" / "done")
 
 
-def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
-    """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
-    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
+def start_sweep(tmp_path, signum, handler):
+    """benchmark.py over one fake run that saves its state on SIGTERM, in a process group of its own as a shell starts
+    a job, with `signum` set to `handler`; returns (the launcher, its work folder) once the run is going."""
     scripts, work = tmp_path / "scripts", tmp_path / "work"
     scripts.mkdir()
     work.mkdir()
@@ -531,12 +531,18 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
     launcher = subprocess.Popen(
         [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
          "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True,  # a process group of its own, as a shell gives a foreground job
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal, however pytest started
+        start_new_session=True, preexec_fn=lambda: signal.signal(signum, handler))
+    deadline = time.time() + 60
+    while not (work / "ready").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    return launcher, work
+
+
+def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
+    """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
+    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
+    launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL)  # as in a terminal, however pytest started
     try:
-        deadline = time.time() + 60
-        while not (work / "ready").exists() and time.time() < deadline:
-            time.sleep(0.05)
         os.killpg(launcher.pid, signal.SIGINT)  # what the terminal does
         output = launcher.communicate(timeout=60)[0]
     finally:
@@ -600,26 +606,9 @@ def test_a_failing_launcher_stops_its_runs_first(tmp_path, monkeypatch):
 def test_nohup_is_kept_and_runs_stop_with_a_killed_launcher(tmp_path):
     """A launcher started under `nohup` (SIGHUP ignored) keeps ignoring it; a launcher killed with SIGKILL, which can
     stop nothing, still takes its runs along: each gets SIGTERM and saves its state, none goes on untracked."""
-    scripts, work = tmp_path / "scripts", tmp_path / "work"
-    scripts.mkdir()
-    work.mkdir()
-    (scripts / "pebble.py").write_text(
-        "import signal, sys, time\n"
-        "def stop(signum, frame):\n"
-        "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
-        "    sys.exit(1)\n"
-        "signal.signal(signal.SIGTERM, stop)\n"
-        "open('ready', 'w').close()\n"
-        "time.sleep(60)\n")
+    launcher, work = start_sweep(tmp_path, signal.SIGHUP, signal.SIG_IGN)  # as `nohup` does
     log = work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log"
-    launcher = subprocess.Popen(
-        [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
-         "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))  # as `nohup` does
     try:
-        deadline = time.time() + 60
-        while not (work / "ready").exists() and time.time() < deadline:
-            time.sleep(0.05)
         launcher.send_signal(signal.SIGHUP)  # a closed terminal
         time.sleep(2)
         assert launcher.poll() is None and "state saved" not in log.read_text()
