@@ -31,15 +31,15 @@ def pooled_sd(*arms) -> float:
     return float(np.sqrt(np.mean([np.var(arm, ddof=1) for arm in arms])))
 
 
-def achieved(lead: float):
-    """The power the tests achieved at the SDs they observed: read only once all 16 runs of the protocol are in."""
+def achieved(lead: float, cpu_study: np.ndarray):
+    """The power the tests achieved at the SDs they observed (H2 against `cpu_study`, the cpu-study's `r2n_pebble`):
+    read only once all 16 runs of the protocol are in."""
     runs = primary([HERE])
     arms = ("pebble_no_early_stop", "r2n_pebble_no_early_stop")
     counts = {arm: len(runs.get(arm, ())) for arm in arms}
     if min(counts.values()) < N:
         raise SystemExit(f"power.py --achieved: {counts} runs of {N} per arm are in; the protocol reads the study only "
                          "when all are")
-    cpu_study = primary([os.path.join(HERE, "..", "cpu-study")])["r2n_pebble"]
     for name, (a, b) in {"H1": (runs[arms[1]], runs[arms[0]]), "H2": (runs[arms[1]], cpu_study)}.items():
         sd = pooled_sd(a, b)
         print(f"{name}: observed pooled SD {sd:.1f}; power for the lead +{lead:.0f}: "
@@ -58,7 +58,7 @@ if __name__ == "__main__":
     sd = pooled_sd(cpu["pebble"], cpu["r2n_pebble"])
     lead = float(cpu["r2n_pebble_no_early_stop"].mean() - cpu["pebble_no_early_stop"].mean())
     if options.achieved:
-        achieved(lead)
+        achieved(lead, cpu["r2n_pebble"])
         raise SystemExit
     print(f"planning SD (pooled, main arms) {sd:.1f}; lead {lead:+.1f}, d = {lead / sd:.2f}, "
           f"power {analyze.power(lead, sd, N):.2f} at {N} per arm")
