@@ -1,7 +1,7 @@
 # docs and usage can be found in README.md, in the section named after this file
 """Launch the paper's experiments: a grid of (method, task, noise, budget, seed) runs, locally or on SLURM.
 
-Presets (`--preset`) are the paper's experiments (ALGORITHMS.md section 6); `--methods`, `--env-ids`, `--noises`,
+Presets (`--preset`) are the paper's experiments and this project's studies (README, `benchmark.py`); `--methods`, `--env-ids`, `--noises`,
 `--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid. Each run has a
 deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
 `python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...` plus
@@ -195,8 +195,8 @@ class Args:
     results_dir: Optional[str] = None
     """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
     `done` file naming the git commit, the device and the numerics flags; a run with that file is finished (default
-    with `--preset cpu-study` or `early-stop`: `results/{preset}`, so that committed results are skipped by the next
-    session)"""
+    with the study presets `cpu-study`, `early-stop`, `cheetah-study` and `imitate`: `results/{preset}`, so that
+    committed results are skipped by the next session)"""
     script_dir: str = ROOT
     """folder holding the scripts"""
     python: str = sys.executable

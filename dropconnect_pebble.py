@@ -15,7 +15,7 @@ appendix defaults. The loop, one iteration per env step:
    reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
 
-Choices where the paper is silent (see ALGORITHMS.md): `--noise-resample` redraws the noise columns of stored
+Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
 as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
 first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;

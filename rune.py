@@ -23,7 +23,7 @@ transition and recomputed at every relabel), and the critic target uses r + beta
 beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05, `--rune-beta-decay` 1e-5, the
 reference's values; it calls this geometric decay "linear decay").
 
-Choices where the paper is silent (see ALGORITHMS.md): `--noise-resample` redraws the noise columns of stored
+Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
 as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
 first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;

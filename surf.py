@@ -28,7 +28,7 @@ least `surf_tau`, averaged over the whole unlabelled minibatch (FixMatch style).
 ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau 0.99 and mu 1 (the reference's
 README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
 
-Choices where the paper is silent (see ALGORITHMS.md): `--noise-resample` redraws the noise columns of stored
+Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
 as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
 first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
