@@ -130,20 +130,30 @@ def is_valid(path: str, n: int) -> bool:
     return True
 
 
+def reserve_rejected_name(path: str) -> str:
+    """A free name `{path}.rejected-{unix time}[-k]`, reserved by creating it empty and exclusively: renaming onto a
+    name that only looked free could delete an earlier rejected file, if another process took it in between."""
+    stamp, k = int(time.time()), 1
+    while True:
+        rejected = f"{path}.rejected-{stamp}" + (f"-{k}" if k > 1 else "")
+        try:
+            os.close(os.open(rejected, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+            return rejected
+        except FileExistsError:
+            k += 1
+
+
 def keeps_existing(path: str, n: int) -> bool:
     """True if the labels file at `path` is the round's answer (valid, hence final). Else False, and `path` is free
     for the caller's answers: a malformed file has been moved aside to `{path}.rejected-{unix time}` (whole and
     atomically: nothing a person wrote is deleted), or the file had gone meanwhile."""
     if is_valid(path, n):
         return True
-    stamp = int(time.time())
-    rejected, k = f"{path}.rejected-{stamp}", 1
-    while os.path.exists(rejected):  # never rename onto an earlier rejected file: that would delete it
-        k += 1
-        rejected = f"{path}.rejected-{stamp}-{k}"
+    rejected = reserve_rejected_name(path)
     try:
-        os.rename(path, rejected)
+        os.rename(path, rejected)  # replaces only the empty placeholder that reserved the name
     except FileNotFoundError:
+        os.remove(rejected)
         return False
     if not is_valid(rejected, n):
         return False

@@ -110,6 +110,18 @@ def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
     kept = sorted(name for name in os.listdir(tmp_path))
     assert len(kept) == 2 and kept[0].startswith("0.json.rejected-") and kept[1] == kept[0] + "-2"
     assert [(tmp_path / name).read_text() for name in kept] == ["[1, 2", "[1, 0"]
+    # a name taken by another process after it looked free is not renamed onto: the reservation is exclusive
+    (tmp_path / "0.json").write_text("[0, 1")
+    with monkeypatch.context() as race:
+        race.setattr(label_app.os.path, "exists", lambda p: False)
+        assert not label_app.keeps_existing(path, 2)
+    assert [(tmp_path / name).read_text() for name in kept] == ["[1, 2", "[1, 0"]
+    third = set(os.listdir(tmp_path)) - set(kept)
+    assert len(third) == 1 and (tmp_path / third.pop()).read_text() == "[0, 1"
+    for name in set(os.listdir(tmp_path)) - set(kept):
+        (tmp_path / name).unlink()
+    # a file that is gone meanwhile leaves no placeholder behind
+    assert not label_app.keeps_existing(path, 2) and sorted(os.listdir(tmp_path)) == kept
     # a valid file that replaced the malformed one between the check and the move is moved back: it is the answer
     (tmp_path / "0.json").write_text("[1, 0]")
     checks = iter([False])  # the check before the move saw the malformed file
