@@ -116,10 +116,9 @@ def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
         race.setattr(label_app.os.path, "exists", lambda p: False)
         assert not label_app.keeps_existing(path, 2)
     assert [(tmp_path / name).read_text() for name in kept] == ["[1, 2", "[1, 0"]
-    third = set(os.listdir(tmp_path)) - set(kept)
-    assert len(third) == 1 and (tmp_path / third.pop()).read_text() == "[0, 1"
-    for name in set(os.listdir(tmp_path)) - set(kept):
-        (tmp_path / name).unlink()
+    [third] = set(os.listdir(tmp_path)) - set(kept)  # the race's file, set aside under a name of its own
+    assert (tmp_path / third).read_text() == "[0, 1"
+    (tmp_path / third).unlink()
     # a file that is gone meanwhile leaves no placeholder behind
     assert not label_app.keeps_existing(path, 2) and sorted(os.listdir(tmp_path)) == kept
     # a valid file that replaced the malformed one between the check and the move is moved back: it is the answer

@@ -27,7 +27,8 @@ def curve(run_dir):
     for path in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
         events = EventAccumulator(path, size_guidance={"scalars": 0})
         events.Reload()
-        if "eval/episodic_return" in events.Tags()["scalars"]:  # a resumed run's earlier part may end before its first
+        # a resumed run's first part may have stopped before its first evaluation: that file has no such tag
+        if "eval/episodic_return" in events.Tags()["scalars"]:
             points.update({e.step: e.value for e in events.Scalars("eval/episodic_return")})
     steps = np.array(sorted(points))
     return steps, np.array([points[s] for s in steps])
