@@ -1086,3 +1086,32 @@ def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_
     result = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
     sd = math.sqrt((np.var(primary["pebble_no_early_stop"], ddof=1) + np.var(primary["r2n_pebble_no_early_stop"], ddof=1)) / 2)
     assert f"H1: observed pooled SD {sd:.1f}; " in result and "H2: observed pooled SD" in result, result
+
+
+@pytest.mark.parametrize("log_dirs, output_dir, baseline, baseline_for", [
+    (("results/cheetah-study",), "results/cheetah-study/analysis", "pebble",
+     ("r2n_pebble=pebble", "sac=sac", "anf_sac=sac")),
+    (("results/early-stop",), "results/early-stop/analysis", "pebble_no_early_stop", ()),
+    (("results/early-stop", "results/cpu-study/r2n_pebble__cartpole-swingup__noise0.9__budget400__seed*"),
+     "results/early-stop/analysis-h2", "r2n_pebble", ("pebble_no_early_stop=pebble_no_early_stop",)),
+])
+def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log_dirs, output_dir, baseline,
+                                                                   baseline_for):
+    """The README's study commands, rerun on the committed event files, give the committed primary table: every
+    number the README's readings quote (means, SEs, p-values, the bootstrap CI) comes from the runs in the repo."""
+    dirs = tuple(path for pattern in log_dirs for path in sorted(glob.glob(os.path.join(ROOT, pattern))))
+    assert analyze.main(analyze.Args(log_dirs=dirs, output_dir=str(tmp_path), baseline=baseline,
+                                     baseline_for=baseline_for, primary_last=3, plots=False)) == 0
+    with open(os.path.join(ROOT, output_dir, "primary.csv")) as f:
+        committed = list(csv.DictReader(f))
+    with open(tmp_path / "primary.csv") as f:
+        regenerated = list(csv.DictReader(f))
+    assert [row["method"] for row in regenerated] == [row["method"] for row in committed]
+    for new, old in zip(regenerated, committed):
+        assert new["seeds"] == old["seeds"] and new["seed_list"] == old["seed_list"], new["method"]
+        for column in ("mean", "se", "p_value", "perm_p", "diff", "ci_low", "ci_high"):
+            if old[column] == "":
+                assert new[column] == "", (new["method"], column)
+            else:
+                assert math.isclose(float(new[column]), float(old[column]), rel_tol=1e-9, abs_tol=1e-9), \
+                    (new["method"], column, new[column], old[column])
