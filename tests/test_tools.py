@@ -1097,8 +1097,9 @@ def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_
 ])
 def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log_dirs, output_dir, baseline,
                                                                    baseline_for):
-    """The README's study commands, rerun on the committed event files, give the committed primary table: every
-    number the README's readings quote (means, SEs, p-values, the bootstrap CI) comes from the runs in the repo."""
+    """The studies' analyze.py commands (README, PROTOCOL.md), rerun on the committed event files, give the committed
+    primary table: every number the README's readings quote (means, SEs, p-values, the bootstrap CI) comes from the
+    runs in the repo."""
     dirs = tuple(path for pattern in log_dirs for path in sorted(glob.glob(os.path.join(ROOT, pattern))))
     assert analyze.main(analyze.Args(log_dirs=dirs, output_dir=str(tmp_path), baseline=baseline,
                                      baseline_for=baseline_for, primary_last=3, plots=False)) == 0

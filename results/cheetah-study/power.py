@@ -13,25 +13,18 @@ import os
 import sys
 
 import numpy as np
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 STUDY = os.path.dirname(os.path.abspath(__file__))
 PILOT = os.path.join(STUDY, "..", "cheetah-pilot")
 sys.path.insert(0, os.path.join(STUDY, "..", ".."))
-import analyze  # noqa: E402 (the repository's: its power calculation)
+import analyze  # noqa: E402 (the repository's: its run reading and power calculation)
 LAST, ALPHA, TARGET, CAP, FLOOR = 3, 0.05, 0.80, 12, 8  # CAP: the most seeds per arm this project's CPU affords
 
 
 def curve(run_dir):
-    points = {}
-    for path in sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))):
-        events = EventAccumulator(path, size_guidance={"scalars": 0})
-        events.Reload()
-        # a resumed run's first part may have stopped before its first evaluation: that file has no such tag
-        if "eval/episodic_return" in events.Tags()["scalars"]:
-            points.update({e.step: e.value for e in events.Scalars("eval/episodic_return")})
-    steps = np.array(sorted(points))
-    return steps, np.array([points[s] for s in steps])
+    """A run's evaluation steps and returns, read as `analyze.py` reads them (a resumed run's files as one run)."""
+    [run] = analyze.read_folder(sorted(glob.glob(os.path.join(run_dir, "events.out.tfevents.*"))))
+    return run.scalars[analyze.EVAL_TAG]
 
 
 def power(d, n):
