@@ -13,7 +13,9 @@ one-tailed Welch's t-test p-value (`scipy.stats.ttest_ind(method, baseline, equa
 of the seeds up to `PERMUTATIONS` of them, else that many random ones) and the difference in means with its
 percentile bootstrap 95% CI (`BOOTSTRAP_RESAMPLES` resamples of each arm; both with a fixed seed, so the tables
 regenerate identically). It also writes learning curves per task (mean ± SE, one colour per method) and
-connectivity plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds).
+connectivity plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds). Where runs log
+`features/{net}/relevant_weight_frac`, it writes `features.md` (its final value per group and network, mean ± SE, with
+the chance level) and one plot per task and setting (its curve per method and network, chance dotted).
 
 Choices where the paper is silent:
 - A run is used only if it is readable, has a hyperparameter table with `env_id`, `exp_name` and `seed`, has at least
@@ -99,6 +101,7 @@ NUMERICS_KEYS = ("compile", "tf32")
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
 EVAL_TAG = "eval/episodic_return"
 SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
+FEATURE_TAG = re.compile(r"^features/(?P<net>[^/]+)/relevant_weight_frac$")  # every script; its chance: `.../chance`
 PERMUTATIONS = 200_000  # the permutation test is exact up to this many relabelings, else samples this many
 BOOTSTRAP_RESAMPLES = 10_000  # per arm, for the CI of the difference in means
 DIAGNOSTIC_TAGS = ("pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy")  # last value, in runs.md
@@ -595,6 +598,40 @@ def connectivity(run: Run) -> list:
     return result
 
 
+def feature_nets(group: Group) -> list:
+    """The networks whose `relevant_weight_frac` and chance every run of the group logs, agent networks first."""
+    nets = None
+    for r in group.runs:
+        found = {m["net"] for tag in r.scalars if (m := FEATURE_TAG.match(tag)) and f"features/{m['net']}/chance" in r.scalars}
+        nets = found if nets is None else nets & found
+    return sorted(nets or (), key=net_order)
+
+
+def features_lines(groups, rows) -> list:
+    """The Markdown table of `features.md`: the final `relevant_weight_frac` per group and network; [] if none logs it."""
+    order = {(r["task"], r["noise"], r["budget"], r["method"]): i for i, r in enumerate(rows)}
+    lines = []
+    for g in sorted(groups, key=lambda g: order[g.key]):
+        for net in feature_nets(g):
+            final = np.array([r.scalars[f"features/{net}/relevant_weight_frac"][1][-1] for r in g.runs])
+            chance = float(g.runs[0].scalars[f"features/{net}/chance"][1][-1])
+            mean, se = mean_se(final)
+            task, noise, budget, method = g.key
+            lines.append(f"| {task} | {noise} | {'-' if budget is None else budget} | {method} | {net} "
+                         f"| {mean:.3f} ± {fmt(se, 3)} | {chance:.3f} | {mean / chance:.2f} | {len(final)} |")
+    if not lines:
+        return []
+    return ["| Task | Noise | Budget | Method | Network | final `relevant_weight_frac` | chance | ratio | Seeds |",
+            "|---|---|---|---|---|---|---|---|---|"] + lines
+
+
+FEATURES_DEFINITION = (
+    "The share of each input layer's absolute weight on relevant columns (real features and actions) at the last"
+    " evaluation, mean ± standard error over seeds; chance is the relevant columns' share of all columns, and ratio"
+    " is the mean over chance. A sparse layer counts its active weights only."
+)
+
+
 def cell(value: float, digits: int, unit: str = "") -> str:
     return "–" if not math.isfinite(value) else f"{value:.{digits}f}{unit}"
 
@@ -645,6 +682,12 @@ def write_tables(rows, groups, runs, args: Args):
                 ])
     with open(os.path.join(args.output_dir, "runs.md"), "w") as f:
         f.write("\n".join(["# Runs", "", RUNS_DEFINITION, ""] + runs_lines(groups, rows)) + "\n")
+    features, features_path = features_lines(groups, rows), os.path.join(args.output_dir, "features.md")
+    if features:
+        with open(features_path, "w") as f:
+            f.write("\n".join(["# Weight on the relevant features", "", FEATURES_DEFINITION, ""] + features) + "\n")
+    elif os.path.exists(features_path):  # an earlier analysis's, of runs that logged it
+        os.remove(features_path)
     with open(os.path.join(args.output_dir, "runs.csv"), "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["path", "task", "noise", "budget", "method", "seed", "status", "reason", "eval_points",
@@ -810,6 +853,28 @@ def write_plots(groups, args: Args) -> list:
                     f"input-layer connectivity, mean ± SE over {len(g.runs)} seeds", {"fontsize": 10},
                     os.path.join(args.output_dir, "connectivity",
                                  safe_name(f"{task}__noise{noise}__budget{budget}__{method}") + ".png"))
+
+    for task, task_groups in by_task.items():
+        for (noise, budget), panel_groups in curve_panels(task_groups):
+            nets = sorted({net for g in panel_groups for net in feature_nets(g)}, key=net_order)
+            if not nets:
+                continue
+            ncols = min(3, len(nets))
+            nrows = math.ceil(len(nets) / ncols)
+            fig, axes = plt.subplots(nrows, ncols, figsize=(max(6.0, 4.5 * ncols), 3.4 * nrows + 0.6), squeeze=False)
+            for ax, net in zip(axes.flat, nets):
+                for g in sorted(panel_groups, key=lambda g: methods.index(g.key[3])):
+                    if net in feature_nets(g):
+                        steps, values = aligned(g, f"features/{net}/relevant_weight_frac")
+                        band(ax, steps, values, f"{g.key[3]} (n={len(g.runs)})", color=colour[g.key[3]])
+                chance = next(g.runs[0].scalars[f"features/{net}/chance"][1][-1] for g in panel_groups
+                              if net in feature_nets(g))
+                ax.axhline(chance, color="grey", linestyle=":", label="chance")
+                style_axis(ax, net, "weight share on relevant columns")
+            os.makedirs(os.path.join(args.output_dir, "features"), exist_ok=True)
+            save_figure(fig, axes, len(nets), f"{task}, noise {noise}, budget {budget}: `relevant_weight_frac`, "
+                        "mean ± SE over seeds", {"fontsize": 10},
+                        os.path.join(args.output_dir, "features", safe_name(f"{task}__noise{noise}__budget{budget}") + ".png"))
     return written
 
 
@@ -837,6 +902,8 @@ def main(args: Args) -> int:
     write_tables(rows, groups, runs, args)
     tables = [f"{name}.{kind}" for _, name, _ in METRICS.values() for kind in ("md", "csv")]
     written = [os.path.join(args.output_dir, f) for f in tables + ["runs.md", "runs.csv"]]
+    if os.path.exists(os.path.join(args.output_dir, "features.md")):
+        written.append(os.path.join(args.output_dir, "features.md"))
     if args.plots:
         written += write_plots(groups, args)
     if args.readme:

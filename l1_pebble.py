@@ -712,7 +712,7 @@ class Loop:
     episode_actions: list = field(default_factory=list)  # the episode's actions so far, to replay it on a resume
     recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
     losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
-    last_eval: dict = field(default_factory=dict)
+    last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
 
 
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
@@ -1232,6 +1232,35 @@ def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, m
     writer.add_scalar("pbrl/reward_true_corr", correlation, global_step)
     writer.add_scalar("pbrl/heldout_accuracy", accuracy, global_step)
 
+def input_layers(agent) -> dict:
+    """The input layers of the actor and of both critics, by the names the logs use."""
+    return {name: getattr(agent, name).net[0].weight for name in ("actor", "qf1", "qf2")}
+
+
+@torch.no_grad()
+def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
+    """The share of an input layer's absolute weight on relevant columns, and its chance level.
+
+    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features and the actions,
+    as in `relevant_active_frac`. Chance is the relevant columns' share of all columns. A zero weight adds nothing,
+    so a sparse layer counts its active weights only."""
+    column = torch.arange(weight.shape[-1], device=weight.device)
+    relevant = (column < obs_dim_real) | (column >= obs_dim)
+    magnitude = weight.abs().sum(0)
+    return magnitude[relevant].sum() / magnitude.sum(), relevant.float().mean()
+
+
+def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
+    """The tags `features/{net}/relevant_weight_frac` and `features/{net}/chance` of each layer, as floats.
+
+    It reads the weights only, so a run's numbers are the same with or without it. One host sync per call."""
+    values = {}
+    for name, weight in layers.items():
+        frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
+        values[f"features/{name}/relevant_weight_frac"] = frac
+        values[f"features/{name}/chance"] = chance
+    return dict(zip(values, torch.stack(list(values.values())).tolist()))
+
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
@@ -1385,6 +1414,9 @@ if __name__ == "__main__":
                 eval_seconds = time.time() - eval_start
                 sps = int((global_step + 1) / (time.time() - start_time))
                 loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
+                loop.last_eval |= weight_shares(input_layers(agent), obs_dim_real, obs_dim)
+                members = {f"reward{i}": weight for i, weight in enumerate(reward_model.weights[0])}
+                loop.last_eval |= weight_shares(members, obs_dim_real, obs_dim)
                 for tag, value in loop.last_eval.items():
                     writer.add_scalar(tag, value, global_step + 1)
                 for e, weight in enumerate(reward_model.weights[0]):

@@ -15,8 +15,8 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from test_scripts import (COMMON_TAGS, ROOT, SPARSE_NETS, SPARSE_TAGS, SPARSE_TINY, TINY, TOPOLOGY_TAGS,  # noqa: E402
-                          check_diagnostics, run_script, scalars)
+from test_scripts import (COMMON_TAGS, FEATURE_TAGS, ROOT, SPARSE_NETS, SPARSE_TAGS, SPARSE_TINY, TINY,  # noqa: E402
+                          TOPOLOGY_TAGS, check_diagnostics, run_script, scalars)
 
 import dropconnect_pebble  # noqa: E402
 import l1_pebble  # noqa: E402
@@ -59,7 +59,7 @@ def test_smoke_reaches_every_phase(script, smoke_runs):
     values = scalars(run_dir)
 
     sparse = script in ("set_pebble.py", "static_pebble.py")
-    expected = COMMON_TAGS + (SPARSE_TAGS if sparse else REWARD_TAGS) + (TOPOLOGY_TAGS if sparse else [])
+    expected = COMMON_TAGS + FEATURE_TAGS + (SPARSE_TAGS if sparse else REWARD_TAGS) + (TOPOLOGY_TAGS if sparse else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag in expected:

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from test_scripts import COMMON_TAGS, ROOT, TINY, run_script, scalars  # noqa: E402
+from test_scripts import COMMON_TAGS, ROOT, TINY, check_features, run_script, scalars  # noqa: E402
 
 import anf_sac  # noqa: E402
 import ene  # noqa: E402
@@ -92,6 +92,10 @@ def test_oracle_smoke_run(script, pipeline):
     assert not missing, f"missing tags {missing}"
     for tag in expected:
         assert all(math.isfinite(v) for v in values[tag]), f"{tag} has non-finite values {values[tag]}"
+    if script == "anf_sac.py":  # sac.py's run is noise-free: every column is relevant
+        check_features(values, AGENT_NETS)
+    assert sorted(tag for tag in values if tag.startswith("features/")) == sorted(
+        f"features/{net}/{m}" for net in AGENT_NETS for m in ("relevant_weight_frac", "chance"))
     assert not [tag for tag in values if tag.startswith("pbrl/") or tag == "losses/state_entropy_reward"]
     if script == "sac.py":
         assert not [tag for tag in values if tag.startswith("sparse/")]
@@ -338,8 +342,8 @@ def test_sac_is_pebble_without_preference_learning():
     # plus 11 of its part of the resume state (PreferenceBuffer's state methods, the PbRL objects and counters),
     # plus 115 for real preferences (preferences.npz, the external teacher, --preferences, physics of queried steps),
     # plus 79 for trusting them (issue 20: teacher.json, the labels files' SHA-256 per round and their check on
-    # resume, the state before every external round)
-    assert 0 < len(changes) <= 635, f"diff sac.py pebble.py: {len(changes)} changed lines > 635"
+    # resume, the state before every external round), plus 2 for the reward members' weight shares at each evaluation
+    assert 0 < len(changes) <= 637, f"diff sac.py pebble.py: {len(changes)} changed lines > 637"
     # outside the docstrings sac.py is pebble.py with lines deleted and a handful reworded
     code_changes = _changes(_without_docstring(sac_source), _without_docstring(pebble_source))
     sac_only = [line for line in code_changes if line.startswith("-")]

@@ -40,6 +40,8 @@ COMMON_TAGS = [
 SPARSE_NETS = ["actor", "qf1", "qf2", "reward0", "reward1", "reward2"]
 SPARSE_TAGS = [f"sparse/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_degree", "noise_degree", "relevant_active_frac")]
 TOPOLOGY_TAGS = [f"sparse/{net}/topology_updates" for net in SPARSE_NETS]  # Static logs 0
+# every script, dense or sparse: the input layers' weight share on relevant columns, and its chance level
+FEATURE_TAGS = [f"features/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_weight_frac", "chance")]
 
 
 def check_diagnostics(values):
@@ -49,6 +51,15 @@ def check_diagnostics(values):
     assert all(a <= b for a, b in zip(steps, steps[1:])), steps  # cumulative
     assert all(-1 <= v <= 1 for v in values["pbrl/reward_true_corr"])
     assert all(0 <= v <= 1 for v in values["pbrl/heldout_accuracy"])
+
+
+def check_features(values, nets):
+    """`features/{net}/*` at every evaluation: a share in (0, 1) and the chance level of cartpole-swingup at 0.9."""
+    for net in nets:
+        assert len(values[f"features/{net}/relevant_weight_frac"]) == len(values["eval/episodic_return"])
+        assert all(0 < v < 1 for v in values[f"features/{net}/relevant_weight_frac"])
+        chance = 5 / 51 if net == "actor" else 6 / 52  # 5 real of 51 features, plus the 1 action column
+        assert values[f"features/{net}/chance"] == pytest.approx([chance] * len(values["eval/episodic_return"]))
 
 
 def run_script(script, args, cwd, check=True):
@@ -75,11 +86,12 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 
-    expected = COMMON_TAGS + (SPARSE_TAGS + TOPOLOGY_TAGS if script in SPARSE_SCRIPTS else [])
+    expected = COMMON_TAGS + FEATURE_TAGS + (SPARSE_TAGS + TOPOLOGY_TAGS if script in SPARSE_SCRIPTS else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag in expected:
         assert all(math.isfinite(v) for v in values[tag]), f"{tag} has non-finite values {values[tag]}"
+    check_features(values, SPARSE_NETS)
 
     # pre-training logged its intrinsic reward; every feedback round ran; the whole budget was asked
     assert values["pbrl/total_feedback"] == [5, 10, 15, 20]

@@ -12,8 +12,8 @@ import torch.nn.functional as F
 
 import rune
 import surf
-from test_scripts import (COMMON_TAGS, ROOT, SPARSE_TAGS, SPARSE_TINY, TINY, TOPOLOGY_TAGS, check_diagnostics, run_script,
-                          scalars)
+from test_scripts import (COMMON_TAGS, FEATURE_TAGS, ROOT, SPARSE_TAGS, SPARSE_TINY, TINY, TOPOLOGY_TAGS,
+                          check_diagnostics, run_script, scalars)
 
 # TINY, shortened to two feedback rounds (500, 1000) and two evaluations (600, 1200); segments of 20 are stored as
 # 30 steps by SURF (crop 5), inside the 100-step episodes. SURF's tau is lowered so that pseudo-labels are kept.
@@ -32,7 +32,7 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 
-    expected = COMMON_TAGS + SCRIPT_TAGS[script] + (SPARSE_TAGS + TOPOLOGY_TAGS if sparse else [])
+    expected = COMMON_TAGS + FEATURE_TAGS + SCRIPT_TAGS[script] + (SPARSE_TAGS + TOPOLOGY_TAGS if sparse else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag in expected:

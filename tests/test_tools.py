@@ -5,6 +5,7 @@ import csv
 import dataclasses
 import glob
 import importlib.util
+import itertools
 import json
 import math
 import os
@@ -403,6 +404,33 @@ def test_presets_expand_to_the_paper_grids():
                                       "--queries-per-round", "25"]
     assert list(by_id["sac__cartpole-swingup__noise0.95__budgetnone__seed3"].command[-6:]) == scale  # no feedback flags
     assert "--no-noise-resample" in by_id["pebble_stored_noise__cartpole-swingup__noise0.9__budget400__seed1"].command
+
+    # the stored-noise study (results/stored-noise/PROTOCOL.md): the cheetah study's runs, each storing its noise
+    cheetah, stored = grid(preset="cheetah-study"), grid(preset="stored-noise")
+    assert len(stored) == len({r.run_id for r in stored}) == 8 * 2 + 3 * 2
+    for original in cheetah:
+        method = f"{original.method}_stored_noise"
+        run_id = original.run_id.replace(f"{original.method}__", f"{method}__", 1)
+        (run,) = [r for r in stored if r.run_id == run_id]
+        assert run.command[1] == original.command[1]  # the same script
+        expected = list(original.command[2:])
+        expected[1] = method  # --exp-name
+        expected[expected.index("--run-name") + 1] = run_id
+        position = expected.index("--run-name") + 2
+        assert list(run.command[2:]) == expected[:position] + ["--no-noise-resample"] + expected[position:]
+    probes = grid(preset="redrawn-probes")
+    assert sorted(r.run_id for r in probes) == sorted(
+        f"{m}__cheetah-run__noise0.9__budget1000__seed{s}" for s in (1, 2, 3)
+        for m in ("r2n_pebble_reward_only", "r2n_pebble_agent_as_reward", "pebble_repeat"))
+    by_id = {r.run_id: r for r in probes}
+    assert "--no-sparse-agent" in by_id["r2n_pebble_reward_only__cheetah-run__noise0.9__budget1000__seed1"].command
+    agent = list(by_id["r2n_pebble_agent_as_reward__cheetah-run__noise0.9__budget1000__seed2"].command)
+    assert agent[agent.index("--agent-drop-fraction") + 1] == "0.2"
+    assert agent[agent.index("--agent-topology-period") + 1] == "100"
+    repeat = by_id["pebble_repeat__cheetah-run__noise0.9__budget1000__seed3"].command
+    (original,) = [r for r in cheetah if r.run_id == "pebble__cheetah-run__noise0.9__budget1000__seed3"]
+    assert [a for a in repeat if "pebble" not in a] == [a for a in original.command if "pebble" not in a]
+    assert not [a for a in (*repeat, *agent) if "noise-resample" in a]  # the default environment: noise redrawn
 
 
 def test_free_grids_and_overrides():
@@ -1086,6 +1114,129 @@ def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_
     result = subprocess.run(command, capture_output=True, text=True, check=True, env=env).stdout
     sd = math.sqrt((np.var(primary["pebble_no_early_stop"], ddof=1) + np.var(primary["r2n_pebble_no_early_stop"], ddof=1)) / 2)
     assert f"H1: observed pooled SD {sd:.1f}; " in result and "H2: observed pooled SD" in result, result
+
+
+@needs_analysis
+def test_analyze_reports_relevant_weight_frac_where_runs_log_it(tmp_path):
+    """`features.md` holds each group's final `relevant_weight_frac` per network (mean ± SE over seeds, chance, their
+    ratio), and a plot per setting shows it; runs without the tags (older studies) get neither."""
+    log_dir = tmp_path / "runs"
+    finals = {"pebble": [0.10, 0.20], "r2n_pebble": [0.30, 0.40]}
+    for method, per_seed in finals.items():
+        for seed, final in enumerate(per_seed, 1):
+            path = write_run(str(log_dir), "cheetah-run", 0.9, 1000, method, seed, [1.0, 2.0, 3.0, 4.0, 5.0])
+            writer = SummaryWriter(path)
+            for step in STEPS:
+                for net, chance in (("actor", 0.1), ("reward0", 0.13)):
+                    writer.add_scalar(f"features/{net}/relevant_weight_frac", final if step == STEPS[-1] else 0.5, step)
+                    writer.add_scalar(f"features/{net}/chance", chance, step)
+            writer.close()
+    out = tmp_path / "analysis"
+    assert analyze.main(analyze.Args(log_dirs=(str(log_dir),), output_dir=str(out), baseline="pebble")) == 0
+    table = (out / "features.md").read_text()
+    se = np.std([0.3, 0.4], ddof=1) / math.sqrt(2)
+    assert f"| cheetah-run | 0.9 | 1000 | r2n_pebble | actor | 0.350 ± {se:.3f} | 0.100 | 3.50 | 2 |" in table, table
+    assert f"| cheetah-run | 0.9 | 1000 | pebble | reward0 | 0.150 ± {se:.3f} | 0.130 | 1.15 | 2 |" in table, table
+    assert (out / "features" / "cheetah-run__noise0.9__budget1000.png").stat().st_size > 0
+    older = tmp_path / "older"
+    write_run(str(older), "cheetah-run", 0.9, 1000, "pebble", 1, [1.0, 2.0, 3.0, 4.0, 5.0])
+    assert analyze.main(analyze.Args(log_dirs=(str(older),), output_dir=str(out), baseline="pebble")) == 0
+    assert not (out / "features.md").exists()
+
+
+def stored_noise_module(name):
+    """results/stored-noise/{name}.py, imported."""
+    spec = importlib.util.spec_from_file_location(f"stored_noise_{name}",
+                                                  os.path.join(ROOT, "results", "stored-noise", f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, os.path.join(ROOT, "results", "stored-noise"))
+    spec.loader.exec_module(module)
+    return module
+
+
+@needs_analysis
+def test_interaction_test_of_the_stored_noise_study_by_brute_force():
+    """H2's statistic D and its exact permutation p (relabelling within each environment), against every relabeling
+    enumerated here, ties included; its Welch-type t and power against the formulas, computed with scipy."""
+    from scipy import stats
+
+    interaction = stored_noise_module("interaction")
+    arms = [np.array(a) for a in ([5.0, 7.0, 9.0], [1.0, 2.0, 2.0], [3.0, 4.0, 4.0], [2.0, 4.0, 6.0])]
+    observed = (arms[0].mean() - arms[1].mean()) - (arms[2].mean() - arms[3].mean())
+
+    def differences(a, b):
+        pooled = np.concatenate([a, b])
+        out = []
+        for first in itertools.combinations(range(6), 3):
+            rest = [i for i in range(6) if i not in first]
+            out.append(pooled[list(first)].mean() - pooled[rest].mean())
+        return out
+
+    brute = np.mean([s - r >= observed - 1e-12 for s in differences(*arms[:2]) for r in differences(*arms[2:])])
+    assert interaction.interaction_p(*arms) == pytest.approx(brute, abs=1e-12)
+    assert 0 < brute < 0.2  # a clear interaction, yet not the smallest p that 3 per arm allows
+    reversed_p = interaction.interaction_p(arms[2], arms[3], arms[0], arms[1])
+    assert reversed_p > 0.8  # the other direction
+    low, high = interaction.interaction_ci(arms)
+    assert low < observed < high
+    assert interaction.interaction_ci([np.full(4, v) for v in (3.0, 1.0, 2.0, 2.0)]) == (2.0, 2.0)
+    same = [np.array([1.0, 2.0, 4.0]) + shift for shift in (3, 0, 1, 0)]  # equal variances: df = 4n - 4
+    t, df, p = interaction.interaction_welch(same)
+    assert df == pytest.approx(8)
+    assert t == pytest.approx(2 / math.sqrt(4 * np.var(same[0], ddof=1) / 3))
+    assert p == pytest.approx(stats.t.sf(t, 8))
+    expected = 1 - stats.nct.cdf(stats.t.ppf(0.95, 28), 28, 79.4 / (50.1 * math.sqrt(4 / 8)))
+    assert interaction.interaction_power(79.4, 50.1, 8) == pytest.approx(expected, rel=1e-9)
+
+
+@needs_analysis
+def test_stored_noise_scripts_reproduce_the_protocol_and_wait_for_every_run(tmp_path):
+    """power.py prints PROTOCOL.md's table from the cheetah study's committed runs; interaction.py and
+    `power.py --achieved` refuse until all 8 runs of the four arms are in, then read them."""
+    script = os.path.join(ROOT, "results", "stored-noise", "power.py")
+    plain = subprocess.run([sys.executable, script], capture_output=True, text=True, check=True).stdout
+    with open(os.path.join(ROOT, "results", "stored-noise", "PROTOCOL.md")) as f:
+        protocol = f.read()
+    for sd, h1, smallest_h1, h2, smallest_h2 in (("50.1", "0.91", 66, "0.71", 91), ("75.2", "0.64", 99, "0.43", 136),
+                                                  ("100.2", "0.45", 132, "0.29", 181)):
+        assert (f"SD {sd}. H1 power for +79.4 at 8 per arm: {h1}; smallest effect with 80% power {smallest_h1}. "
+                f"H2 power for D = +79.4: {h2}; smallest D with 80% power {smallest_h2}") in plain, plain
+        assert f"| {h1} | {smallest_h1} | {h2} | {smallest_h2} |" in protocol
+    # copies beside synthetic runs: this study's two arms and the cheetah study's, the last run not yet done
+    study, cheetah = tmp_path / "results" / "stored-noise", tmp_path / "results" / "cheetah-study"
+    study.mkdir(parents=True)
+    for name in ("interaction.py", "power.py"):
+        (study / name).write_text(open(os.path.join(ROOT, "results", "stored-noise", name)).read())
+    rng = np.random.default_rng(1)
+    primary = {}
+    for folder, method in ((study / "runs", "r2n_pebble_stored_noise"), (study / "runs", "pebble_stored_noise"),
+                           (cheetah, "r2n_pebble"), (cheetah, "pebble")):
+        for seed in range(1, 9):
+            returns = values(rng, 5, 100)
+            primary.setdefault(method, []).append(returns[-3:].mean())
+            run = folder / f"{method}__cheetah-run__noise0.9__budget1000__seed{seed}"
+            writer = SummaryWriter(str(run))  # a committed run: its event file directly in the run's folder
+            for step, value in zip(STEPS, returns):
+                writer.add_scalar("eval/episodic_return", value, step)
+            writer.close()
+            if not (method == "pebble_stored_noise" and seed == 8):
+                (run / "done").write_text("exit code 0\n")
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    for command in ([str(study / "interaction.py")], [str(study / "power.py"), "--achieved"]):
+        refused = subprocess.run([sys.executable, *command], capture_output=True, text=True, env=env)
+        assert refused.returncode != 0 and "7 of 8 pebble_stored_noise runs are in" in refused.stderr, refused.stderr
+    (study / "runs" / "pebble_stored_noise__cheetah-run__noise0.9__budget1000__seed8" / "done").write_text("0\n")
+    result = subprocess.run([sys.executable, str(study / "interaction.py")], capture_output=True, text=True,
+                            check=True, env=env).stdout
+    arms = [np.array(primary[m]) for m in ("r2n_pebble_stored_noise", "pebble_stored_noise", "r2n_pebble", "pebble")]
+    d = (arms[0].mean() - arms[1].mean()) - (arms[2].mean() - arms[3].mean())
+    assert f"H2: D = {d:+.1f}, bootstrap 95% CI" in result, result
+    interaction = stored_noise_module("interaction")
+    assert f"exact permutation p {interaction.interaction_p(*arms):.4f}" in result, result
+    achieved = subprocess.run([sys.executable, str(study / "power.py"), "--achieved"], capture_output=True, text=True,
+                              check=True, env=env).stdout
+    pooled = math.sqrt((np.var(arms[0], ddof=1) + np.var(arms[1], ddof=1)) / 2)
+    assert f"achieved, H1 (the stored arms' pooled SD): SD {pooled:.1f}." in achieved, achieved
 
 
 @pytest.mark.parametrize("log_dirs, output_dir, baseline, baseline_for", [
