@@ -67,11 +67,15 @@ VARIANTS = {
     "r2n_pebble_reward_only": ("r2n_pebble.py", ("--no-sparse-agent",)),
     "r2n_pebble_agent_only": ("r2n_pebble.py", ("--no-sparse-reward",)),
     # the CPU study's sensitivity arms: the stored (memorisable) noise, and reward training without early stopping
-    **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",)) for m in ("pebble", "r2n_pebble")},
+    **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",)) for m in ("pebble", "r2n_pebble", "sac", "anf_sac")},
     **{f"{m}_no_early_stop": (f"{m}.py", ("--reward-stop-accuracy", "1.1")) for m in ("pebble", "r2n_pebble")},
+    # the stored-noise study's probe: the agent's RigL at the reward models' settings (the paper's section 4)
+    "r2n_pebble_agent_as_reward": ("r2n_pebble.py", ("--agent-drop-fraction", "0.2", "--agent-topology-period", "100")),
+    # and a repeat of the cheetah study's PEBBLE runs, under a name of its own so that the two are never pooled
+    "pebble_repeat": ("pebble.py", ()),
 }
 # SAC oracles: trained on the true reward, no feedback budget.
-NO_FEEDBACK = frozenset({"sac", "anf_sac"})
+NO_FEEDBACK = frozenset({"sac", "anf_sac", "sac_stored_noise", "anf_sac_stored_noise"})
 
 
 class Preset(NamedTuple):
@@ -108,6 +112,17 @@ CHEETAH_STUDY = tuple(
     Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"))
     for methods, seeds in ((("pebble", "r2n_pebble"), tuple(range(1, 9))), (("sac", "anf_sac"), (1, 2, 3)))
 )
+# Issue 29's study of the stored noise (results/stored-noise/PROTOCOL.md, fixed before its first run): the cheetah
+# study's design with every arm storing the noise it saw (`--no-noise-resample`), as B-Pref's buffers would.
+STORED_NOISE = tuple(
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"))
+    for methods, seeds in ((("pebble_stored_noise", "r2n_pebble_stored_noise"), tuple(range(1, 9))),
+                           (("sac_stored_noise", "anf_sac_stored_noise"), (1, 2, 3)))
+)
+# Its exploratory probes, run after it, in the cheetah study's environment (redrawn noise), 3 seeds each, no test.
+REDRAWN_PROBES = (Preset((("cheetah-run", 0.9, 1000),),
+                         ("r2n_pebble_reward_only", "r2n_pebble_agent_as_reward", "pebble_repeat"), (1, 2, 3),
+                         CHEETAH_FLAGS, ("--feedback-freq", "1200")),)
 # Issue 21's imitating noise (results/imitate/PROTOCOL.md, exploratory): the cpu-study's main setting with noise features
 # drawn from the histograms of a noise-free SAC policy's observations (made by results/imitate/run.sh first).
 IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY_FLAGS + (
@@ -115,7 +130,8 @@ IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY
 ), CPU_STUDY_FEEDBACK),)  # an absolute path: each run works in its own scratch folder
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
 RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study",
-           "imitate": "results/imitate"}
+           "imitate": "results/imitate", "stored-noise": "results/stored-noise/runs",
+           "redrawn-probes": "results/stored-noise/probes"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -149,22 +165,28 @@ PRESETS = {
     "cheetah-study": CHEETAH_STUDY,
     # imitating noise, exploratory: cartpole-swingup 0.9/400 at the cpu-study's scale, 3 + 3 runs
     "imitate": IMITATE,
+    # the cheetah study with the noise stored: 8 + 8 PbRL runs and 3 + 3 oracle runs
+    "stored-noise": STORED_NOISE,
+    # after it, redrawn noise: R2N's reward half alone, the agent's RigL at the reward's settings, PEBBLE again; 3 x 3
+    "redrawn-probes": REDRAWN_PROBES,
 }
 
 
 @dataclass
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
-                             "early-stop", "cheetah-study", "imitate"]] = None
+                             "early-stop", "cheetah-study", "imitate", "stored-noise", "redrawn-probes"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
     `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
     confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`); `imitate`,
-    imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms)"""
+    imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms);
+    `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
+    its two exploratory arms in the default environment (`results/stored-noise/probes`)"""
     methods: Optional[tuple[str, ...]] = None
-    """methods (= `--exp-name`): a script name without `.py`, or a variant (`r2n_pebble_reward_only`,
-    `r2n_pebble_agent_only`); replaces the preset's"""
+    """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,
+    `pebble_stored_noise`, ...); replaces the preset's"""
     env_ids: Optional[tuple[str, ...]] = None
     """tasks; with a preset, keeps only these (a paper task outside it gets the main table's noise and budget)"""
     noises: Optional[tuple[float, ...]] = None
@@ -195,8 +217,7 @@ class Args:
     results_dir: Optional[str] = None
     """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
     `done` file naming the git commit, the device and the numerics flags; a run with that file is finished (default
-    with the study presets `cpu-study`, `early-stop`, `cheetah-study` and `imitate`: `results/{preset}`, so that
-    committed results are skipped by the next session)"""
+    with the study presets: `RESULTS[preset]`, so that committed results are skipped by the next session)"""
     script_dir: str = ROOT
     """folder holding the scripts"""
     python: str = sys.executable
