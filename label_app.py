@@ -101,16 +101,22 @@ def labels_path(run_dir: str, round_index: int) -> str:
     return os.path.join(run_dir, "labels", f"{round_index}.json")
 
 
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+
+
 def parse_answers(text: bytes, n: int) -> list:
     """The answers in `text` if they are valid labels for a round of n queries (the rule the run reads by: a JSON
-    list of n answers, each 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+    list of n answers, each exactly 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+    number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
-        answers = json.loads(text)
+        answers = json.loads(text, parse_int=number, parse_float=number, parse_constant=number)
     except RecursionError:  # json gives up on deep nesting this way
         raise ValueError("not JSON: nested too deeply") from None
     except ValueError as e:  # JSONDecodeError, UnicodeDecodeError
         raise ValueError(f"not JSON: {e}") from None
-    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+    # true and false are bools, which Python counts as 1 and 0
+    if not isinstance(answers, list) or len(answers) != n or any(
+            isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
         raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
     return answers
 

@@ -1263,13 +1263,20 @@ def check_labels_unchanged(folder: str, queries: dict):
                              f"back as it was (the run's preferences.npz holds its labels, round {round_index})")
 
 
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+
+
 def labels_problem(content: bytes, n: int) -> Optional[str]:
-    """Why a labels file's bytes are not n valid answers, or None."""
+    """Why a labels file's bytes are not n valid answers (a JSON list, each exactly 0, 1, 0.5 or "skip"), or None.
+    The labelling page checks by the same rule (label_app.parse_answers)."""
+    number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
-        answers = json.loads(content)
+        answers = json.loads(content, parse_int=number, parse_float=number, parse_constant=number)
     except (ValueError, RecursionError) as e:  # a UnicodeDecodeError and a JSONDecodeError are ValueErrors
         return f"not JSON ({type(e).__name__})"
-    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+    # true and false are bools, which Python counts as 1 and 0
+    if not isinstance(answers, list) or len(answers) != n or any(
+            isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
         return f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"'
     return None
 

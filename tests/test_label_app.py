@@ -14,6 +14,7 @@ import time
 import numpy as np
 import pytest
 
+from label_examples import INVALID, VALID
 from test_labelling import answers_enabled, chrome, free_port, needs_chromium
 from test_scripts import ROOT
 
@@ -97,6 +98,18 @@ def test_label_app_writes_a_round_once(tmp_path):
         assert json.loads((run / "labels" / "1.json").read_text()) == [0.5, 1, "skip"]
         assert get_state(address)["round"] is None
     assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
+
+
+def test_label_app_takes_exactly_the_labels_the_run_takes():
+    """The page's check of a labels file, on the table the run's check is tested on (tests/label_examples.py)."""
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    for content, n in VALID:
+        assert label_app.parse_answers(content, n) == json.loads(content), content
+    for content, n in INVALID:
+        with pytest.raises(ValueError):
+            label_app.parse_answers(content, n)
 
 
 def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):

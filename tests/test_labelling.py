@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from label_examples import INVALID, VALID
 from test_scripts import ROOT, SPARSE_TINY, TINY, run_script, scalars
 
 sys.path.insert(0, ROOT)
@@ -85,6 +86,14 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     central = slice(5, 25) if "surf" in script else slice(None)
     np.testing.assert_array_equal(saved["obs"][:5, :, central], queries["obs"])
     np.testing.assert_array_equal(saved["physics"][:5, :, central], queries["physics"])
+
+
+def test_the_run_takes_exactly_the_labels_the_page_takes():
+    """The run's check of a labels file, on the table the page's check is tested on (tests/label_examples.py)."""
+    for content, n in VALID:
+        assert pebble.labels_problem(content, n) is None, content
+    for content, n in INVALID:
+        assert pebble.labels_problem(content, n) is not None, content
 
 
 def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
