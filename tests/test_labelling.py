@@ -67,6 +67,12 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     _, simulated = pebble.teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
     assert answers == simulated.tolist()  # the oracle teacher's labels, on the same queries
     (run / "labels" / "0.json").write_text(json.dumps(answers))
+    # training on: teacher.json says the current step (the page shows it), not the round's
+    def training_on():
+        teacher = json.loads((run / "teacher.json").read_text())
+        return teacher["phase"] == "training" and teacher["step"] > 500
+
+    wait_for(training_on, process, log, seconds=120)
     # round 1: an equal and a skip among them
     wait_for(lambda: (run / "queries" / "1.npz").exists(), process, log)
     with np.load(run / "queries" / "1.npz") as data:
