@@ -35,7 +35,9 @@ http://localhost:8000 on your own. Without a display MuJoCo needs `MUJOCO_GL=egl
 """
 import errno
 import glob
+import hashlib
 import io
+import ipaddress
 import json
 import os
 import re
@@ -45,6 +47,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Optional
 from urllib.parse import urlsplit
@@ -201,14 +204,33 @@ def write_labels(run_dir: str, round_index: int, body: bytes):
             os.remove(tmp)
 
 
-def read_teacher(run_dir: str) -> Optional[dict]:
-    """The run's status file `teacher.json`, or None: an older run, or one that has not asked yet, has none."""
+TEACHER_KEYS = ("task", "run", "pid", "host", "phase", "round", "queries", "asked", "labelled", "budget", "step",
+                "total_steps", "message", "updated")  # what the run writes in teacher.json
+
+
+def read_teacher(run_dir: str) -> tuple:
+    """The run's status file `teacher.json`, and why it cannot be read. (None, None): an older run, or one that has
+    not asked yet, has none. (None, a sentence): the file is not the run's (the run writes it whole, atomically)."""
     try:
-        with open(os.path.join(run_dir, "teacher.json")) as f:
+        with open(os.path.join(run_dir, "teacher.json"), "rb") as f:
             teacher = json.load(f)
-    except (OSError, ValueError):  # written atomically by the run, so unreadable only if it is not the run's
-        return None
-    return teacher if isinstance(teacher, dict) else None
+    except FileNotFoundError:
+        return None, None
+    except OSError as e:
+        return None, f"{type(e).__name__}: {e.strerror}"
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError; deep nesting
+        return None, f"not JSON: {e}".splitlines()[0]
+    if not isinstance(teacher, dict):
+        return None, "not a JSON object"
+    missing = [key for key in TEACHER_KEYS if key not in teacher]
+    if missing:
+        return None, f"it lacks the keys {', '.join(missing)}"
+    # the app computes with these two: the age of the news, and whether the run's process lives
+    if isinstance(teacher["updated"], bool) or not isinstance(teacher["updated"], (int, float)):
+        return None, f"updated is {json.dumps(teacher['updated'])}, not a number"
+    if isinstance(teacher["pid"], bool) or not isinstance(teacher["pid"], int) or not 0 < teacher["pid"] < 2 ** 31:
+        return None, f"pid is {json.dumps(teacher['pid'])}, not a positive whole number"
+    return teacher, None
 
 
 def alive(pid: int) -> bool:
@@ -236,8 +258,8 @@ def silent_for(teacher: dict) -> Optional[float]:
 def state(run_dir: str) -> dict:
     """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
     `teacher.json` when it has one."""
-    teacher = read_teacher(run_dir)
-    pending, n, malformed, answered, labels, task = None, None, None, 0, 0, None
+    teacher, unreadable = read_teacher(run_dir)
+    pending, n, digest, malformed, answered, labels, task = None, None, None, None, 0, 0, None
     for r in rounds(run_dir):
         queries = load_queries(run_dir, r)
         task = queries["env_id"]
@@ -246,6 +268,7 @@ def state(run_dir: str) -> dict:
         except (FileNotFoundError, ValueError) as e:
             if pending is None:
                 pending, n = r, len(queries["physics"])
+                digest = hashlib.sha256(queries["physics"].tobytes()).hexdigest()[:16]
                 malformed = str(e) if isinstance(e, ValueError) else None
             continue
         answered += 1
@@ -255,10 +278,14 @@ def state(run_dir: str) -> dict:
         "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
         "round": pending,  # the lowest round with queries and no valid labels file, or None
         "n": n,  # its number of queries
+        "queries_digest": digest,  # of its queries' physics states: the same queries (a resumed run's too), the same
+                                   # digest; the page keeps a round's answers in the browser for these queries only
         "malformed": malformed,  # why its labels file, if it has one, is not valid
         "rounds_answered": answered,  # rounds with a valid labels file
         "labels": teacher["labelled"] if teacher else labels,  # answers other than "skip": the run's count, else the files'
         "teacher": teacher,  # teacher.json as the run wrote it, or None
+        "teacher_problem": unreadable and f"teacher.json cannot be read ({unreadable}): the page shows what the run's "
+                                          "files say",  # or None
         "silent_for": silent_for(teacher) if teacher else None,  # seconds since the run's last news, if not responding
     }
 
@@ -353,7 +380,8 @@ async function submit() {
   submitting = true; $("submit").hidden = $("undo").hidden = true;
   $("progress").textContent = `round ${round}: saving...`;
   try {
-    const reply = await fetch(`/api/labels/${round}`, {method: "POST", body: JSON.stringify(answers)});
+    const reply = await fetch(`/api/labels/${round}`,
+      {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(answers)});
     $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)` : reply.status === 409
       ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used`
       : `round ${round} was not saved: ${await reply.text()}`;
@@ -381,6 +409,7 @@ function render() {
     notices.push(`the run is not responding (last heard ${Math.round(state.silent_for)} s ago): ` +
                  "running the same command again resumes it");
   if (t?.phase === "stopped") notices.push(`the run has stopped: ${t.message ?? "no reason given"}`);
+  if (state.teacher_problem !== null) notices.push(state.teacher_problem);
   $("notices").replaceChildren(...notices.map((text) => Object.assign(document.createElement("p"), {textContent: text})));
   if (round === null && !submitting) $("progress").textContent = idle();
 }
@@ -409,7 +438,44 @@ refresh();
 """
 
 
-def make_handler(run_dir: str, clips: Clips):
+class Address:
+    """The host names under which the app is this machine's, for the Host header of every request: the address it
+    binds, and for a loopback address (the default) `localhost`; for a wildcard address (0.0.0.0, ::), any IP address,
+    `localhost` and the machine's name. A name of someone else's that resolves to this machine (DNS rebinding) is
+    none of them. The port is not checked: an SSH tunnel may forward another one."""
+
+    def __init__(self, bound: str):
+        self.bound = bound.strip("[]").lower()
+        self.names = {self.bound}
+        self.any_ip = self.bound in ("", "0.0.0.0", "::")
+        if self.any_ip:
+            self.names |= {"localhost", socket.gethostname().lower()}
+        elif self.bound == "localhost" or is_ip(self.bound) and ipaddress.ip_address(self.bound).is_loopback:
+            self.names |= {"localhost", "127.0.0.1", "::1"}
+
+    def serves(self, host: Optional[str]) -> bool:
+        """Whether a request's Host header (`name`, `name:port`, `[v6]:port`) names this machine."""
+        match = re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:\d+)?", host or "")
+        if not match:
+            return False
+        name = match.group(1).strip("[]").lower()
+        return name in self.names or self.any_ip and is_ip(name)
+
+    def __str__(self) -> str:
+        if self.any_ip:
+            return f"an IP address of this machine, localhost or {socket.gethostname()}"
+        return f"{self.bound} or localhost" if "localhost" in self.names - {self.bound} else self.bound
+
+
+def is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def make_handler(run_dir: str, clips: Clips, address: Address):
     class Handler(BaseHTTPRequestHandler):
         timeout = 60  # seconds: a client that sends less than its Content-Length does not hold a thread for ever
 
@@ -417,12 +483,26 @@ def make_handler(run_dir: str, clips: Clips):
             self.send_response(code)
             self.send_header("Content-Type", content_type)
             self.send_header("Content-Length", str(len(body)))
+            if code == HTTPStatus.METHOD_NOT_ALLOWED:
+                self.send_header("Allow", "GET, HEAD, POST")
             self.end_headers()
-            self.wfile.write(body)
+            if self.command != "HEAD":  # a reply to HEAD has the headers of GET's, and no body
+                self.wfile.write(body)
+
+        def send_error(self, code: int, message: Optional[str] = None, explain: Optional[str] = None):
+            """http.server's own refusals, as one line: a method without a `do_` method here (501 there) gets 405,
+            a malformed request its code and http.server's sentence."""
+            if code == HTTPStatus.NOT_IMPLEMENTED:
+                code = HTTPStatus.METHOD_NOT_ALLOWED
+                message = f"the method {self.command} is not allowed: the app answers GET, HEAD and POST"
+            self.close_connection = True
+            self.reply(code, (message or HTTPStatus(code).phrase).encode())
 
         def answer(self, route):
             """Answer with `route`'s reply; a refused request gets its code and one line, never a traceback."""
             try:
+                if not address.serves(self.headers.get("Host")):  # a page under another name (DNS rebinding)
+                    raise Refused(403, f"refused: {self.headers.get('Host')} is not this app's address ({address})")
                 reply = route(urlsplit(self.path).path)
             except Refused as e:
                 reply = e.code, str(e).encode()
@@ -437,6 +517,9 @@ def make_handler(run_dir: str, clips: Clips):
             self.reply(*reply)
 
         def do_GET(self):
+            self.answer(self.get)
+
+        def do_HEAD(self):
             self.answer(self.get)
 
         def do_POST(self):
@@ -454,9 +537,18 @@ def make_handler(run_dir: str, clips: Clips):
             return 200, clips.gif(*map(int, match.groups())), "image/gif"
 
         def post(self, path: str) -> tuple:
+            origin = self.headers.get("Origin")  # a browser sends it with every POST; a script need not
+            if origin is not None and origin.lower() not in (f"http://{self.headers['Host']}".lower(),
+                                                             f"https://{self.headers['Host']}".lower()):
+                raise Refused(403, f"refused: only this app's page can write labels, not a page from {origin}")
             match = re.fullmatch(r"/api/labels/(\d+)", path)
             if not match:
                 raise Refused(404, f"no such page: {path}")
+            # a page may send another origin a form or text unasked, but JSON only after a preflight (OPTIONS),
+            # which gets 405 here
+            content_type = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+            if content_type != "application/json":
+                raise Refused(415, f"expected Content-Type: application/json, not {content_type or 'none'}")
             length = self.headers.get("Content-Length", "")
             if not re.fullmatch(r"\d+", length):
                 raise ValueError("expected a Content-Length header: the size of the body in bytes")
@@ -483,7 +575,8 @@ def main(args: Args) -> int:
         print(f"label_app: error: run_dir: no such folder: {args.run_dir}", file=sys.stderr)
         return 1
     try:
-        server = Server((args.host, args.port), make_handler(args.run_dir, Clips(args.run_dir, args.fps)))
+        handler = make_handler(args.run_dir, Clips(args.run_dir, args.fps), Address(args.host))
+        server = Server((args.host, args.port), handler)
     except OSError as e:
         flag = f"--port {args.port}" if e.errno == errno.EADDRINUSE else f"--host {args.host}"
         print(f"label_app: error: {flag}: {(e.strerror or str(e)).lower()}", file=sys.stderr)

@@ -3,12 +3,14 @@ second answer, a malformed file set aside, never deleted), the run's state from 
 the page in a real headless Chromium (two tabs, clips before answers, undo, the run's states)."""
 import contextlib
 import http.client
+import http.server
 import json
 import os
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -60,20 +62,25 @@ def serve(run, **env):
     assert "Traceback" not in output, output
 
 
-def request(address, method, path, body=None, headers=None):
-    """(status, body) of one request, with exactly the given headers (a POST gets its Content-Length unless given)."""
+JSON = {"Content-Type": "application/json"}
+
+
+def request(address, method, path, body=None, headers=None, reply_headers=False):
+    """(status, body) of one request, with exactly the given headers (a body gets its Content-Length and the JSON
+    Content-Type unless headers are given; Host is the address unless given); with `reply_headers`, (status, body,
+    the reply's headers)."""
     connection = http.client.HTTPConnection(address, timeout=30)
-    connection.putrequest(method, path)
-    headers = {"Content-Length": str(len(body))} if headers is None and body is not None else headers or {}
+    headers = {"Content-Length": str(len(body)), **JSON} if headers is None and body is not None else headers or {}
+    connection.putrequest(method, path, skip_host="Host" in headers)
     for key, value in headers.items():
         connection.putheader(key, value)
     connection.endheaders()
     if body is not None:
         connection.send(body)
     reply = connection.getresponse()
-    result = reply.status, reply.read()
+    result = reply.status, reply.read(), dict(reply.getheaders())
     connection.close()
-    return result
+    return result if reply_headers else result[:2]
 
 
 def get_state(address):
@@ -149,10 +156,12 @@ def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
     (run / "labels" / "1.json").write_text("[1, 0]")
     with serve(run) as address:
         # no teacher.json (an older run, or one that has not asked yet): the files alone
-        assert get_state(address) == {
+        state = get_state(address)
+        assert len(state.pop("queries_digest")) == 16
+        assert state == {
             "run": "ext", "task": "cartpole-swingup", "round": 1, "n": 3,
             "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "rounds_answered": 1, "labels": 2,
-            "teacher": None, "silent_for": None}
+            "teacher": None, "teacher_problem": None, "silent_for": None}
         write_teacher(run, round=1, asked=3, labelled=2)
         state = get_state(address)
         assert state["teacher"]["phase"] == "waiting" and state["labels"] == 2 and state["silent_for"] is None
@@ -181,21 +190,108 @@ def test_label_app_answers_bad_requests_and_serves_on(tmp_path):
             ("GET", "/clip/0/0/2.gif", None, None, 404),
             ("POST", "/api/other", b"[]", None, 404),
             ("POST", "/api/labels/1", b"[0, 0, 0]", None, 404),  # a round without queries
-            ("POST", "/api/labels/0", None, {}, 400),  # no Content-Length
-            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "three"}, 400),
-            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "-9"}, 400),
+            ("POST", "/api/labels/0", None, JSON, 400),  # no Content-Length
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "three", **JSON}, 400),
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "-9", **JSON}, 400),
             ("POST", "/api/labels/0", b"[0, 0,", None, 400),
             ("POST", "/api/labels/0", b"\xff\xfe", None, 400),
             ("POST", "/api/labels/0", nested, None, 400),
             ("POST", "/api/labels/0", b"[0, 2, 0]", None, 400),
             ("POST", "/api/labels/0", b"[0, 1]", None, 400),
             ("POST", "/api/labels/0", b'{"answers": [0, 1, 0]}', None, 400),
-            ("POST", "/api/labels/0", None, {"Content-Length": "70000"}, 413),  # refused before a body is sent
+            ("POST", "/api/labels/0", None, {"Content-Length": "70000", **JSON}, 413),  # refused before a body is sent
         ]:
             status, reply = request(address, method, path, body, headers)
             assert status == code and len(reply.decode().splitlines()) == 1, (method, path, status, reply)
             assert get_state(address)["round"] == 0  # serving on, nothing written
         assert not (run / "labels").exists() or os.listdir(run / "labels") == []
+
+
+def test_label_app_writes_for_its_own_page_only(tmp_path):
+    """Another origin's page, a DNS rebinding (a host name of the attacker's that resolves to this machine) and a
+    body that is not JSON cannot write labels; the page's own origin and a script (no Origin header) can."""
+    run = make_run(tmp_path, (3, 3, 3))
+    with serve(run) as address:
+        port = address.split(":")[1]
+        body = b"[0, 0, 0]"
+        length = {"Content-Length": str(len(body))}
+        for headers, code in [
+            ({**length, **JSON, "Origin": "http://evil.example"}, 403),
+            ({**length, **JSON, "Origin": f"http://127.0.0.1:{int(port) + 1}"}, 403),  # another port: another origin
+            ({**length, **JSON, "Origin": "null"}, 403),  # a sandboxed frame or a file
+            ({**length, **JSON, "Host": f"evil.example:{port}", "Origin": f"http://evil.example:{port}"}, 403),
+            ({**length, **JSON, "Host": f"127.0.0.1.evil.example:{port}"}, 403),
+            ({**length, **JSON, "Host": f"evil.example@127.0.0.1:{port}"}, 403),
+            ({**length, "Content-Type": "text/plain"}, 415),  # what a page may send to another origin unasked
+            ({**length, "Content-Type": "application/x-www-form-urlencoded"}, 415),
+            ({**length, "Content-Type": "multipart/form-data; boundary=x"}, 415),
+            (length, 415),
+        ]:
+            status, reply = request(address, "POST", "/api/labels/0", body, headers)
+            assert status == code and len(reply.decode().splitlines()) == 1, (headers, status, reply)
+        for path in ("/", "/api/state", "/clip/0/0/0.gif"):  # a rebound name reads nothing either
+            status, reply = request(address, "GET", path, headers={"Host": f"evil.example:{port}"})
+            assert status == 403 and reply.decode() == (
+                f"refused: evil.example:{port} is not this app's address (127.0.0.1 or localhost)"), reply
+        # a preflight, which a page needs to send JSON to another origin, is refused
+        status, reply, headers = request(address, "OPTIONS", "/api/labels/0", headers={
+            "Origin": "http://evil.example", "Access-Control-Request-Method": "POST",
+            "Access-Control-Request-Headers": "content-type"}, reply_headers=True)
+        assert status == 405 and not [key for key in headers if key.lower().startswith("access-control-")]
+        assert not (run / "labels").exists() or os.listdir(run / "labels") == []
+        # the page's own origin, under each name of this machine's loopback address; a script sends no Origin
+        for r, host in enumerate([f"127.0.0.1:{port}", f"localhost:{port}", f"LocalHost:{port}"]):
+            headers = {**length, "Content-Type": "application/json; charset=utf-8", "Host": host,
+                       "Origin": f"http://{host.lower()}"}
+            assert request(address, "POST", f"/api/labels/{r}", body, headers)[0] == 200, host
+        assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json", "2.json"]
+
+
+def test_label_app_other_methods_get_one_line(tmp_path):
+    """Methods other than GET, HEAD and POST: 405 and one line; HEAD is GET without the body."""
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        for method in ("PUT", "DELETE", "PATCH", "OPTIONS", "TRACE", "CONNECT", "BREW"):
+            status, reply, headers = request(address, method, "/api/labels/0", b"[0, 0, 0]", reply_headers=True)
+            assert status == 405 and headers["Allow"] == "GET, HEAD, POST", (method, status)
+            assert reply.decode() == f"the method {method} is not allowed: the app answers GET, HEAD and POST"
+        host, port = address.split(":")
+        with socket.create_connection((host, int(port)), timeout=30) as raw:
+            raw.sendall(b"GET /a b HTTP/1.1\r\n\r\n")  # a malformed request line: http.server's own 400
+            reply = http.client.HTTPResponse(raw)
+            reply.begin()
+            assert reply.status == 400 and reply.read() == b"Bad request syntax ('GET /a b HTTP/1.1')"
+        status, reply, headers = request(address, "HEAD", "/api/state", reply_headers=True)
+        assert status == 200 and reply == b"" and int(headers["Content-Length"]) > 0
+        assert headers["Content-Type"] == "application/json"
+        assert request(address, "HEAD", "/nothing")[0] == 404
+        assert get_state(address)["round"] == 0
+    assert not (run / "labels").exists()
+
+
+def test_label_app_state_with_a_teacher_json_it_cannot_read(tmp_path):
+    """A `teacher.json` that is not the run's: the state from the files, and one line saying why, not a 500."""
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        for text, problem in [
+            ('{"phase": "training", "step": 3}', "teacher.json cannot be read (it lacks the keys task, run, pid, "
+                                                  "host, round, queries, asked, labelled, budget, total_steps, "
+                                                  "message, updated): the page shows what the run's files say"),
+            ("[1, 2]", "teacher.json cannot be read (not a JSON object): the page shows what the run's files say"),
+            ("{", "teacher.json cannot be read (not JSON: Expecting property name enclosed in double quotes: line 1 "
+                  "column 2 (char 1)): the page shows what the run's files say"),
+        ]:
+            (run / "teacher.json").write_text(text)
+            state = get_state(address)
+            assert state["teacher_problem"] == problem and state["teacher"] is None and state["round"] == 0
+        for key, value in [("updated", "yesterday"), ("pid", "1234"), ("pid", 0), ("pid", 2 ** 80), ("pid", True)]:
+            write_teacher(run, **{key: value})
+            state = get_state(address)
+            assert state["teacher_problem"] == f"teacher.json cannot be read ({key} is {json.dumps(value)}, not a "  \
+                f"{'positive whole number' if key == 'pid' else 'number'}): the page shows what the run's files say"
+            assert state["teacher"] is None
+        write_teacher(run)
+        assert get_state(address)["teacher_problem"] is None
 
 
 def test_label_app_port_in_use(tmp_path):
@@ -352,3 +448,51 @@ def test_label_app_run_states_in_a_headless_browser(tmp_path):
         driver.save_screenshot(str(tmp_path / "label_app_finished.png"))
         if os.environ.get("R2N_SCREENSHOT_FINISHED"):  # to refresh the README's picture
             shutil.copy(tmp_path / "label_app_finished.png", os.environ["R2N_SCREENSHOT_FINISHED"])
+
+
+@contextlib.contextmanager
+def another_origin(page: str):
+    """`page` served from another origin: a second tiny server, on another port of this machine."""
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(page.encode())))
+            self.end_headers()
+            self.wfile.write(page.encode())
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"127.0.0.1:{server.server_port}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@needs_chromium
+def test_label_app_another_origin_cannot_write_labels_in_a_headless_browser(tmp_path):
+    """Any page the labeller opens could try to answer the pending round: without CORS (text, as a form may send)
+    the app refuses its Origin and its Content-Type; with JSON the browser asks first (a preflight), and the app
+    refuses that."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        attack = f"""<!doctype html><title>attacking</title><script>
+            const target = "http://{address}/api/labels/0", body = "[0, 0, 0]";
+            Promise.allSettled([
+                fetch(target, {{method: "POST", mode: "no-cors", headers: {{"Content-Type": "text/plain"}}, body}}),
+                fetch(target, {{method: "POST", headers: {{"Content-Type": "application/json"}}, body}}),
+            ]).then((results) => {{ document.title = results.map((result) => result.status).join(" "); }});
+        </script>"""
+        with another_origin(attack) as elsewhere, contextlib.closing(chrome()) as driver:
+            driver.get(f"http://{elsewhere}/")
+            WebDriverWait(driver, 60).until(lambda d: d.title != "attacking")
+            # the first was sent (its reply is opaque to the page), the second never left the browser
+            assert driver.title == "fulfilled rejected"
+        assert not (run / "labels").exists()
+        assert get_state(address)["round"] == 0
