@@ -6,32 +6,41 @@
 It shows the pending round's queries one at a time: the two segments as clips, side by side, rendered with MuJoCo's
 offscreen renderer from the physics states stored with each query. The answer is left, right, equal or skip, by
 mouse or keyboard (arrow keys, `=`/space, `s`); the answer buttons and keys wait until both clips of the query have
-loaded (the next query's clips are fetched ahead). Backspace or "undo" takes back the last answer; after the last
-query "submit round r" (or Enter) writes `labels/{round}.json`, which the run is waiting for, and the page waits for
-the next round. Standard library only (plus the project's numpy, imageio and dm_control): the training scripts need
-no web dependency.
+loaded and been shown for a second (the next query's clips are fetched ahead), and a key held down answers once.
+Backspace or "undo" takes back the last answer; after the last query "submit round r" (or Enter) writes
+`labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library only
+(plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
 
 Labels you can trust:
 - A round's labels file is written once. The app writes a temporary file, fsyncs it, then hard-links it to
   `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
-  each 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another tab,
-  another app, a script) gets HTTP 409 and changes nothing.
+  each exactly 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another
+  tab, another app, a script) gets HTTP 409 and changes nothing.
+- A person's answers live in the page until the app says they are saved: the browser keeps them (localStorage, by
+  run and round, for the round's queries only), so a reload, a closed tab or a failed submit (HTTP 500, the app
+  gone) loses none, and the page says what failed. A 200 drops them; a 409, or a round answered elsewhere (which
+  the page notices within a poll, 2 s), drops them once the page has said so.
+- Only the page's own origin can write labels. Every request must name the app's address in its Host header (a
+  name of someone else's that resolves to this machine, DNS rebinding, gets 403); a POST with an Origin header must
+  come from the page's own origin (else 403) and send `Content-Type: application/json` (else 415), which a page of
+  another origin can send only after a CORS preflight, which gets 405.
 - A malformed labels file leaves its round pending; the page shows why it is not valid, and submitting the round's
   answers moves it aside to `labels/{round}.json.rejected-{unix time}` (nothing a person wrote is deleted).
-- The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training,
-  finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine whose
-  process has gone), else from the run's files alone.
-- A bad request gets its HTTP code and one line (404, 400, 413 above 64 KiB), never a traceback, and the app serves
-  on; a port in use is one line on stderr and exit code 1.
+- The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training at
+  step s, finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine
+  whose process has gone), else from the run's files alone, with one line saying why when it cannot read it.
+- A bad request gets its HTTP code and one line (404, 400, 403, 405 for methods other than GET, HEAD and POST, 413
+  above 64 KiB, 415), never a traceback, and the app serves on; a port in use is one line on stderr and exit code 1.
 
 The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file. The app reads
 `teacher.json` (keys task, run, pid, host, phase, round, queries, asked, labelled, budget, step, total_steps, message,
 updated; written by the run) but never writes it.
 
 It binds to localhost. On a remote machine, forward the port: `ssh -L 8000:localhost:8000 host`, then open
-http://localhost:8000 on your own. Without a display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa`
-(software); the app sets `egl` when neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only,
-`R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so that a test sees the page before the clips have loaded.
+http://localhost:8000 on your own (the Host check takes any port: a tunnel may forward another one). Without a
+display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa` (software); the app sets `egl` when
+neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only, `R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so
+that a test sees the page before the clips have loaded.
 """
 import errno
 import glob
@@ -343,16 +352,72 @@ PAGE = """<!doctype html>
 <button id="undo" hidden>&#9003; undo</button>
 <script>
 const $ = (id) => document.getElementById(id);
+const SHOWN_MS = 1000;  // a query takes answers once its clips have been shown this long: a double click cannot
+                        // answer the next query, whose clips were fetched ahead and appear at once
 let state = null, timer = null;  // the app's last /api/state, and the next refresh
 let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
+let key = null, digest = null, storageProblem = null;  // where the browser keeps the answers, for which queries
 let shown = 0, ready = false, ahead = [];  // queries shown (a late image of an earlier one is ignored), whether
-                                           // both clips of this one have loaded, the next one's clips
+                                           // this one takes answers, the next one's clips
 const clip = (r, i, side) => `/clip/${r}/${i}/${side}.gif`;
+const count = (k) => `${k} answer${k === 1 ? "" : "s"}`;
+const LABELS = {left: 0, right: 1, equal: 0.5, skip: "skip"};
 
+// The answers of a round stay in the browser's storage until the app says it has saved them: a reload, a closed
+// tab or a failed submit loses none. They are kept by run and round, with a digest of the round's queries, so that
+// another run of the same name never gets them.
+function keep(failure = null) {
+  try {
+    localStorage.setItem(key, JSON.stringify({digest, answers, failure}));
+    storageProblem = null;
+  } catch (error) {
+    storageProblem = `this browser cannot keep your answers (${error.message}): a reload would lose them`;
+  }
+}
+function forget(storageKey = key) {
+  try { localStorage.removeItem(storageKey); } catch (error) { /* nothing was kept */ }
+}
+function kept(storageKey) {  // the answers kept under storageKey, or null
+  try {
+    const saved = JSON.parse(localStorage.getItem(storageKey));
+    if (Array.isArray(saved?.answers) && saved.answers.every((a) => Object.values(LABELS).includes(a))) return saved;
+  } catch (error) { /* none, or not the page's */ }
+  return null;
+}
+function forgetAnswered() {  // answers kept for rounds of this run that are no longer waiting: tell, then drop them
+  const prefix = `r2n-labels/${state.run}/`, told = [];
+  let storageKeys = [];
+  try { storageKeys = Object.keys(localStorage).filter((k) => k.startsWith(prefix)); } catch (error) { return; }
+  for (const storageKey of storageKeys) {
+    const r = Number(storageKey.slice(prefix.length)), saved = kept(storageKey);
+    if (state.round !== null && r >= state.round) continue;
+    const k = saved?.answers.length;
+    if (k) told.push(`your ${count(k)} to round ${r}, kept in this browser, ${k === 1 ? "was" : "were"} not used: ` +
+                     "it was answered elsewhere");
+    forget(storageKey);
+  }
+  if (told.length) $("message").textContent = told.join("; ");
+}
+function start() {  // the round the app says is waiting, with the answers this browser kept for it
+  round = state.round; n = state.n; digest = state.queries_digest; key = `r2n-labels/${state.run}/${round}`;
+  const saved = kept(key), ours = saved?.digest === digest && saved.answers.length <= n;
+  if (saved !== null && !ours) forget();  // kept for another run of the same name
+  answers = ours ? saved.answers : [];
+  if (answers.length)
+    $("message").textContent = `your ${count(answers.length)} to round ${round}, kept in this browser, are back` +
+      (saved.failure ? ` (the last submit: ${saved.failure})` : "");
+  show();
+}
+function enable(on) {
+  for (const button of document.querySelectorAll("#answers button")) button.disabled = !on;
+}
+function hide() {  // no round on the page
+  ++shown; ready = false; enable(false);
+  $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
+}
 function show() {  // the current query (one per answer so far), or the submit step after the last
   const i = answers.length, token = ++shown;
-  ready = false;
-  for (const button of document.querySelectorAll("#answers button")) button.disabled = true;
+  ready = false; enable(false);
   $("clips").hidden = true; $("answers").hidden = i === n; $("undo").hidden = i === 0;
   $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
   if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
@@ -360,34 +425,49 @@ function show() {  // the current query (one per answer so far), or the submit s
   $("left").src = clip(round, i, 0); $("right").src = clip(round, i, 1);
   Promise.all([$("left").decode(), $("right").decode()]).then(() => {
     if (token !== shown) return;
-    ready = true; $("clips").hidden = false;
-    for (const button of document.querySelectorAll("#answers button")) button.disabled = false;
+    $("clips").hidden = false;
     if (i + 1 < n) ahead = [0, 1].map((side) => Object.assign(new Image(), {src: clip(round, i + 1, side)}));
+    setTimeout(() => { if (token === shown) { ready = true; enable(true); } }, SHOWN_MS);
   }, () => {
     if (token === shown) $("message").textContent = `the clips of query ${i + 1} did not load: the app's output says why`;
   });
 }
 function answer(choice) {
   if (round === null || !ready) return;
-  answers.push({left: 0, right: 1, equal: 0.5, skip: "skip"}[choice]); show();
+  answers.push(LABELS[choice]); keep(); show();
 }
 function undo() {
   if (round === null || submitting || answers.length === 0) return;
-  answers.pop(); show();
+  answers.pop(); keep(); show();
+}
+function answeredElsewhere() {  // the round on the page is no longer waiting: someone else's answers were saved
+  const k = answers.length;
+  $("message").textContent = `round ${round} was answered elsewhere (another tab, another app or a script)` +
+    (k ? `: your ${count(k)} to it ${k === 1 ? "was" : "were"} not used` : "");
+  forget(); round = null; hide();
 }
 async function submit() {
   if (round === null || submitting || answers.length < n) return;
   submitting = true; $("submit").hidden = $("undo").hidden = true;
   $("progress").textContent = `round ${round}: saving...`;
+  let failure = null;
   try {
     const reply = await fetch(`/api/labels/${round}`,
       {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(answers)});
-    $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)` : reply.status === 409
-      ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used`
-      : `round ${round} was not saved: ${await reply.text()}`;
-    round = null;
-  } catch (error) {  // the app is not there: keep the answers, to submit again
-    $("message").textContent = `round ${round} was not saved: the app does not answer (${error.message}); submit again`;
+    if (reply.ok || reply.status === 409) {  // saved, here or elsewhere: the answers are told about, then dropped
+      $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)`
+        : `round ${round} was already answered, perhaps in another tab: your answers for it were not used`;
+      forget(); round = null;
+    } else {
+      failure = `HTTP ${reply.status}: ${await reply.text()}`;
+    }
+  } catch (error) {  // the app is not there
+    failure = `the app does not answer: ${error.message}`;
+  }
+  if (failure !== null) {  // the answers stay, in the page and in the browser, to submit again
+    keep(failure);
+    $("message").textContent = `round ${round} was not saved (${failure}); your answers are kept in this browser: ` +
+      "submit again";
     show();
   }
   submitting = false; clearTimeout(timer); refresh();
@@ -410,6 +490,7 @@ function render() {
                  "running the same command again resumes it");
   if (t?.phase === "stopped") notices.push(`the run has stopped: ${t.message ?? "no reason given"}`);
   if (state.teacher_problem !== null) notices.push(state.teacher_problem);
+  if (storageProblem !== null) notices.push(storageProblem);
   $("notices").replaceChildren(...notices.map((text) => Object.assign(document.createElement("p"), {textContent: text})));
   if (round === null && !submitting) $("progress").textContent = idle();
 }
@@ -418,20 +499,26 @@ async function refresh() {
     const reply = await fetch("/api/state");
     if (!reply.ok) throw new Error(await reply.text());
     state = await reply.json();
+    if (round !== null && !submitting && state.round !== round) answeredElsewhere();
     render();
-    if (round === null && !submitting && state.round !== null) { round = state.round; n = state.n; answers = []; show(); }
+    if (round === null && !submitting) {
+      forgetAnswered();
+      if (state.round !== null) start();
+    }
   } catch (error) {
     $("notices").replaceChildren(Object.assign(document.createElement("p"),
       {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
   }
   timer = setTimeout(refresh, 2000);
 }
-for (const choice of ["left", "equal", "right", "skip"]) $(`answer-${choice}`).onclick = () => answer(choice);
+for (const choice of Object.keys(LABELS)) $(`answer-${choice}`).onclick = () => answer(choice);
 $("undo").onclick = undo; $("submit").onclick = submit;
 document.addEventListener("keydown", (e) => {
   const choice = {ArrowLeft: "left", ArrowRight: "right", "=": "equal", " ": "equal", s: "skip"}[e.key];
   const action = choice ? () => answer(choice) : {Backspace: undo, Enter: submit}[e.key];
-  if (action) { e.preventDefault(); action(); }
+  if (!action) return;
+  e.preventDefault();
+  if (!e.repeat) action();  // a key held down acts once
 });
 refresh();
 </script></body></html>
@@ -501,8 +588,9 @@ def make_handler(run_dir: str, clips: Clips, address: Address):
         def answer(self, route):
             """Answer with `route`'s reply; a refused request gets its code and one line, never a traceback."""
             try:
-                if not address.serves(self.headers.get("Host")):  # a page under another name (DNS rebinding)
-                    raise Refused(403, f"refused: {self.headers.get('Host')} is not this app's address ({address})")
+                host = self.headers.get("Host")
+                if not address.serves(host):  # a page under another name (DNS rebinding)
+                    raise Refused(403, f"refused: {host or 'no Host header'} is not this app's address ({address})")
                 reply = route(urlsplit(self.path).path)
             except Refused as e:
                 reply = e.code, str(e).encode()

@@ -1,11 +1,14 @@
 """The labelling page (README: "Labelling by hand"), on a run folder written by hand: labels written once (409 for a
-second answer, a malformed file set aside, never deleted), the run's state from `teacher.json`, bad requests, and
-the page in a real headless Chromium (two tabs, clips before answers, undo, the run's states)."""
+second answer, a malformed file set aside, never deleted), by the page's own origin only, the run's state from
+`teacher.json`, bad requests, and the page in a real headless Chromium (two tabs, clips shown before answers, undo,
+answers kept through a reload and a server error, a round answered elsewhere, a double click and a held key, another
+origin's page, the run's states)."""
 import contextlib
 import http.client
 import http.server
 import json
 import os
+import resource
 import shutil
 import socket
 import subprocess
@@ -48,11 +51,14 @@ def write_teacher(run, **changes):
 
 
 @contextlib.contextmanager
-def serve(run, **env):
-    """The app on a free port, as a subprocess: yields its address; afterwards, its output has no traceback."""
+def serve(run, processes=None, **env):
+    """The app on a free port, as a subprocess: yields its address (and appends its process to `processes`, if
+    given); afterwards, its output has no traceback."""
     port = free_port()
     app = subprocess.Popen([sys.executable, LABEL_APP, str(run), "--port", str(port)], stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True, env=dict(os.environ, OMP_NUM_THREADS="1", **env))
+    if processes is not None:
+        processes.append(app)
     try:
         assert app.stdout.readline().startswith(f"labelling {run} at http://127.0.0.1:{port}"), "the app did not start"
         yield f"127.0.0.1:{port}"
@@ -339,12 +345,18 @@ def test_label_app_two_tabs_answering_a_round_in_a_headless_browser(tmp_path):
             WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
         answer_round(first, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], submit=False)
         answer_round(second, [Keys.ARROW_RIGHT, "="], submit=False)
+        # the second tab hears nothing from the app until it submits, so it cannot see the round answered before
+        second.execute_cdp_cmd("Network.enable", {})
+        second.execute_cdp_cmd("Network.setBlockedURLs", {"urls": ["*/api/state"]})
+        WebDriverWait(second, 30).until(lambda d: texts[1]("notices").startswith("the page could not get the run's state"))
         answer_round(first, [])  # the first tab submits first and wins
         WebDriverWait(first, 30).until(lambda d: texts[0]("message") == "round 0 saved (labels/0.json)")
         answer_round(second, [])
         WebDriverWait(second, 30).until(lambda d: texts[1]("message") == (
             "round 0 was already answered, perhaps in another tab: your answers for it were not used"))
         assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]
+        assert stored(first) == stored(second) == {}  # told, then dropped
+        second.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
         for driver, text in zip((first, second), texts):  # both move on
             WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
 
@@ -448,6 +460,130 @@ def test_label_app_run_states_in_a_headless_browser(tmp_path):
         driver.save_screenshot(str(tmp_path / "label_app_finished.png"))
         if os.environ.get("R2N_SCREENSHOT_FINISHED"):  # to refresh the README's picture
             shutil.copy(tmp_path / "label_app_finished.png", os.environ["R2N_SCREENSHOT_FINISHED"])
+        (run / "teacher.json").write_text('{"phase": "training"}')  # not the run's: the files say what they can
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("teacher.json cannot be read (it lacks "))
+        assert text() == "no round is waiting for labels; this page checks every 2 s"
+
+
+def stored(driver):
+    """The answers the page keeps in this browser, by key."""
+    return driver.execute_script("return Object.fromEntries(Object.entries(localStorage))")
+
+
+def answer_queries(driver, keys, first, n=3):
+    """Answer queries `first`, `first` + 1, ... of the round shown (of n), one key each once the page takes answers."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    text = lambda: driver.find_element(By.ID, "progress").text  # noqa: E731
+    body = driver.find_element(By.TAG_NAME, "body")
+    for i, key in enumerate(keys, first):
+        WebDriverWait(driver, 60).until(lambda d: text().endswith(f": query {i} of {n}") and answers_enabled(d))
+        body.send_keys(key)
+        WebDriverWait(driver, 30).until(lambda d: not text().endswith(f": query {i} of {n}"))
+
+
+@needs_chromium
+def test_label_app_keeps_answers_through_a_reload_and_a_server_error_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    apps = []
+    with serve(run, apps) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], first=1)
+        driver.refresh()  # mid-round: the two answers are kept
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 3 of 3")
+        assert text("message") == "your 2 answers to round 0, kept in this browser, are back"
+        answer_queries(driver, ["="], first=3)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        # the app cannot write a byte, as on a full disk: HTTP 500
+        resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (0, resource.RLIM_INFINITY))
+        answer_round(driver, [])
+        failure = "HTTP 500: OSError: [Errno 27] File too large"
+        WebDriverWait(driver, 30).until(lambda d: text("message") == (
+            f"round 0 was not saved ({failure}); your answers are kept in this browser: submit again"))
+        assert text() == "round 0: all 3 answered"
+        driver.refresh()  # after the failure: the answers are kept, and the page says what failed
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: all 3 answered")
+        assert text("message") == f"your 3 answers to round 0, kept in this browser, are back (the last submit: {failure})"
+        resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+        answer_round(driver, [])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5]
+        assert stored(driver) == {}  # saved: the browser's copy is gone
+        assert os.listdir(run / "labels") == ["0.json"]  # the failed write left nothing behind
+        driver.refresh()
+        WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+        assert text("message") == ""
+
+
+@needs_chromium
+def test_label_app_notices_a_round_answered_elsewhere_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3, 3))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT], first=1)
+        assert text() == "round 0: query 2 of 3"
+        assert request(address, "POST", "/api/labels/0", b"[1, 1, 1]")[0] == 200  # another tab, or a script
+        # told within a poll, before answering more of it: the next answer is round 1's
+        WebDriverWait(driver, 30).until(lambda d: text("message") == (
+            "round 0 was answered elsewhere (another tab, another app or a script): your 1 answer to it was not used"))
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 1: query 1 of 3")
+        assert stored(driver) == {}
+        answer_queries(driver, [Keys.ARROW_RIGHT], first=1)
+        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 1, 1]
+        assert [json.loads(value)["answers"] for value in stored(driver).values()] == [[1]]
+        # the page closed mid-round, and the round answered meanwhile: told when the page opens again
+        driver.get("about:blank")
+        assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 200
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+        assert text("message") == "your 1 answer to round 1, kept in this browser, was not used: it was answered elsewhere"
+        assert stored(driver) == {}
+
+
+def prefetched(driver, query):
+    """Whether both clips of `query` of round 0 have arrived in the browser (fetched ahead, not shown yet)."""
+    return driver.execute_script("""
+        const query = arguments[0];
+        return [0, 1].every((side) =>
+            performance.getEntriesByName(new URL(`/clip/0/${query}/${side}.gif`, location).href).length > 0);
+    """, query)
+
+
+@needs_chromium
+def test_label_app_one_answer_per_double_click_or_held_key_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (4,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 4" and answers_enabled(d))
+        WebDriverWait(driver, 60).until(lambda d: prefetched(d, 1))  # query 2's clips are ready at once
+        right = driver.find_element(By.ID, "answer-right")
+        ActionChains(driver).click(right).pause(0.15).click().perform()  # a double click
+        WebDriverWait(driver, 60).until(answers_enabled)
+        assert text() == "round 0: query 2 of 4"
+        WebDriverWait(driver, 60).until(lambda d: prefetched(d, 2))
+        # ← held down for 2 s: one keydown, then the keyboard's repeats
+        key = {"key": "ArrowLeft", "code": "ArrowLeft", "windowsVirtualKeyCode": 37, "nativeVirtualKeyCode": 37}
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "rawKeyDown", **key})
+        for _ in range(40):
+            time.sleep(0.05)  # the keyboard's repeat rate
+            driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "rawKeyDown", "autoRepeat": True, **key})
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyUp", **key})
+        WebDriverWait(driver, 60).until(lambda d: answers_enabled(d) or d.find_element(By.ID, "submit").is_displayed())
+        assert text() == "round 0: query 3 of 4"
+        answer_round(driver, ["=", "s"])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 0, 0.5, "skip"]
 
 
 @contextlib.contextmanager
