@@ -253,6 +253,24 @@ def test_label_app_writes_for_its_own_page_only(tmp_path):
         assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json", "2.json"]
 
 
+def test_label_app_host_names():
+    """The names a request's Host may give, by the address the app binds: any port (a tunnel may forward another)."""
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    loopback, wildcard, lan = (label_app.Address(bound) for bound in ("127.0.0.1", "0.0.0.0", "192.168.1.5"))
+    for host in ("127.0.0.1:8000", "localhost:8000", "LOCALHOST:9000", "[::1]:8000", "localhost"):
+        assert loopback.serves(host) and wildcard.serves(host), host
+    for host in ("192.168.1.5:8000", "10.0.0.7:8000", "[fe80::1]:8000", f"{socket.gethostname()}:8000"):
+        assert wildcard.serves(host) and not loopback.serves(host), host
+    assert lan.serves("192.168.1.5:8000") and not lan.serves("localhost:8000") and not lan.serves("10.0.0.7:8000")
+    for host in (None, "", "evil.example:8000", "127.0.0.1.nip.io:8000", "localhost.evil.example", "a@127.0.0.1:8000",
+                 "127.0.0.1:80:80", "127.0.0.1 :8000"):
+        assert not loopback.serves(host) and not wildcard.serves(host), host
+    assert (str(loopback), str(label_app.Address("localhost")), str(lan)) == (
+        "127.0.0.1 or localhost", "localhost", "192.168.1.5")
+
+
 def test_label_app_other_methods_get_one_line(tmp_path):
     """Methods other than GET, HEAD and POST: 405 and one line; HEAD is GET without the body."""
     run = make_run(tmp_path, (3,))
