@@ -6,36 +6,47 @@
 It shows the pending round's queries one at a time: the two segments as clips, side by side, rendered with MuJoCo's
 offscreen renderer from the physics states stored with each query. The answer is left, right, equal or skip, by
 mouse or keyboard (arrow keys, `=`/space, `s`); the answer buttons and keys wait until both clips of the query have
-loaded (the next query's clips are fetched ahead). Backspace or "undo" takes back the last answer; after the last
-query "submit round r" (or Enter) writes `labels/{round}.json`, which the run is waiting for, and the page waits for
-the next round. Standard library only (plus the project's numpy, imageio and dm_control): the training scripts need
-no web dependency.
+loaded and been shown for a second (the next query's clips are fetched ahead), and a key held down answers once.
+Backspace or "undo" takes back the last answer; after the last query "submit round r" (or Enter) writes
+`labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library only
+(plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
 
 Labels you can trust:
 - A round's labels file is written once. The app writes a temporary file, fsyncs it, then hard-links it to
   `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
-  each 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another tab,
-  another app, a script) gets HTTP 409 and changes nothing.
+  each exactly 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another
+  tab, another app, a script) gets HTTP 409 and changes nothing.
+- A person's answers live in the page until the app says they are saved: the browser keeps them (localStorage, by
+  run and round, for the round's queries only), so a reload, a closed tab or a failed submit (HTTP 500, the app
+  gone) loses none, and the page says what failed. A 200 drops them; a 409, or a round answered elsewhere (which
+  the page notices within a poll, 2 s), drops them once the page has said so.
+- Only the page's own origin can write labels. Every request must name the app's address in its Host header (a
+  name of someone else's that resolves to this machine, DNS rebinding, gets 403); a POST with an Origin header must
+  come from the page's own origin (else 403) and send `Content-Type: application/json` (else 415), which a page of
+  another origin can send only after a CORS preflight, which gets 405.
 - A malformed labels file leaves its round pending; the page shows why it is not valid, and submitting the round's
   answers moves it aside to `labels/{round}.json.rejected-{unix time}` (nothing a person wrote is deleted).
-- The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training,
-  finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine whose
-  process has gone), else from the run's files alone.
-- A bad request gets its HTTP code and one line (404, 400, 413 above 64 KiB), never a traceback, and the app serves
-  on; a port in use is one line on stderr and exit code 1.
+- The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training at
+  step s, finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine
+  whose process has gone), else from the run's files alone, with one line saying why when it cannot read it.
+- A bad request gets its HTTP code and one line (404, 400, 403, 405 for methods other than GET, HEAD and POST, 413
+  above 64 KiB, 415), never a traceback, and the app serves on; a port in use is one line on stderr and exit code 1.
 
 The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file. The app reads
 `teacher.json` (keys task, run, pid, host, phase, round, queries, asked, labelled, budget, step, total_steps, message,
 updated; written by the run) but never writes it.
 
 It binds to localhost. On a remote machine, forward the port: `ssh -L 8000:localhost:8000 host`, then open
-http://localhost:8000 on your own. Without a display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa`
-(software); the app sets `egl` when neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only,
-`R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so that a test sees the page before the clips have loaded.
+http://localhost:8000 on your own (the Host check takes any port: a tunnel may forward another one). Without a
+display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa` (software); the app sets `egl` when
+neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only, `R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so
+that a test sees the page before the clips have loaded.
 """
 import errno
 import glob
+import hashlib
 import io
+import ipaddress
 import json
 import os
 import re
@@ -45,6 +56,7 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Optional
 from urllib.parse import urlsplit
@@ -101,16 +113,22 @@ def labels_path(run_dir: str, round_index: int) -> str:
     return os.path.join(run_dir, "labels", f"{round_index}.json")
 
 
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+
+
 def parse_answers(text: bytes, n: int) -> list:
     """The answers in `text` if they are valid labels for a round of n queries (the rule the run reads by: a JSON
-    list of n answers, each 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+    list of n answers, each exactly 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+    number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
-        answers = json.loads(text)
+        answers = json.loads(text, parse_int=number, parse_float=number, parse_constant=number)
     except RecursionError:  # json gives up on deep nesting this way
         raise ValueError("not JSON: nested too deeply") from None
     except ValueError as e:  # JSONDecodeError, UnicodeDecodeError
         raise ValueError(f"not JSON: {e}") from None
-    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+    # true and false are bools, which Python counts as 1 and 0
+    if not isinstance(answers, list) or len(answers) != n or any(
+            isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
         raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
     return answers
 
@@ -195,14 +213,33 @@ def write_labels(run_dir: str, round_index: int, body: bytes):
             os.remove(tmp)
 
 
-def read_teacher(run_dir: str) -> Optional[dict]:
-    """The run's status file `teacher.json`, or None: an older run, or one that has not asked yet, has none."""
+TEACHER_KEYS = ("task", "run", "pid", "host", "phase", "round", "queries", "asked", "labelled", "budget", "step",
+                "total_steps", "message", "updated")  # what the run writes in teacher.json
+
+
+def read_teacher(run_dir: str) -> tuple:
+    """The run's status file `teacher.json`, and why it cannot be read. (None, None): an older run, or one that has
+    not asked yet, has none. (None, a sentence): the file is not the run's (the run writes it whole, atomically)."""
     try:
-        with open(os.path.join(run_dir, "teacher.json")) as f:
+        with open(os.path.join(run_dir, "teacher.json"), "rb") as f:
             teacher = json.load(f)
-    except (OSError, ValueError):  # written atomically by the run, so unreadable only if it is not the run's
-        return None
-    return teacher if isinstance(teacher, dict) else None
+    except FileNotFoundError:
+        return None, None
+    except OSError as e:
+        return None, f"{type(e).__name__}: {e.strerror}"
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError; deep nesting
+        return None, f"not JSON: {e}".splitlines()[0]
+    if not isinstance(teacher, dict):
+        return None, "not a JSON object"
+    missing = [key for key in TEACHER_KEYS if key not in teacher]
+    if missing:
+        return None, f"it lacks the keys {', '.join(missing)}"
+    # the app computes with these two: the age of the news, and whether the run's process lives
+    if isinstance(teacher["updated"], bool) or not isinstance(teacher["updated"], (int, float)):
+        return None, f"updated is {json.dumps(teacher['updated'])}, not a number"
+    if isinstance(teacher["pid"], bool) or not isinstance(teacher["pid"], int) or not 0 < teacher["pid"] < 2 ** 31:
+        return None, f"pid is {json.dumps(teacher['pid'])}, not a positive whole number"
+    return teacher, None
 
 
 def alive(pid: int) -> bool:
@@ -230,8 +267,8 @@ def silent_for(teacher: dict) -> Optional[float]:
 def state(run_dir: str) -> dict:
     """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
     `teacher.json` when it has one."""
-    teacher = read_teacher(run_dir)
-    pending, n, malformed, answered, labels, task = None, None, None, 0, 0, None
+    teacher, unreadable = read_teacher(run_dir)
+    pending, n, digest, malformed, answered, labels, task = None, None, None, None, 0, 0, None
     for r in rounds(run_dir):
         queries = load_queries(run_dir, r)
         task = queries["env_id"]
@@ -240,6 +277,7 @@ def state(run_dir: str) -> dict:
         except (FileNotFoundError, ValueError) as e:
             if pending is None:
                 pending, n = r, len(queries["physics"])
+                digest = hashlib.sha256(queries["physics"].tobytes()).hexdigest()[:16]
                 malformed = str(e) if isinstance(e, ValueError) else None
             continue
         answered += 1
@@ -249,10 +287,14 @@ def state(run_dir: str) -> dict:
         "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
         "round": pending,  # the lowest round with queries and no valid labels file, or None
         "n": n,  # its number of queries
+        "queries_digest": digest,  # of its queries' physics states: the same queries (a resumed run's too), the same
+                                   # digest; the page keeps a round's answers in the browser for these queries only
         "malformed": malformed,  # why its labels file, if it has one, is not valid
         "rounds_answered": answered,  # rounds with a valid labels file
         "labels": teacher["labelled"] if teacher else labels,  # answers other than "skip": the run's count, else the files'
         "teacher": teacher,  # teacher.json as the run wrote it, or None
+        "teacher_problem": unreadable and f"teacher.json cannot be read ({unreadable}): the page shows what the run's "
+                                          "files say",  # or None
         "silent_for": silent_for(teacher) if teacher else None,  # seconds since the run's last news, if not responding
     }
 
@@ -310,16 +352,72 @@ PAGE = """<!doctype html>
 <button id="undo" hidden>&#9003; undo</button>
 <script>
 const $ = (id) => document.getElementById(id);
+const SHOWN_MS = 1000;  // a query takes answers once its clips have been shown this long: a double click cannot
+                        // answer the next query, whose clips were fetched ahead and appear at once
 let state = null, timer = null;  // the app's last /api/state, and the next refresh
 let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
+let key = null, digest = null, storageProblem = null;  // where the browser keeps the answers, for which queries
 let shown = 0, ready = false, ahead = [];  // queries shown (a late image of an earlier one is ignored), whether
-                                           // both clips of this one have loaded, the next one's clips
+                                           // this one takes answers, the next one's clips
 const clip = (r, i, side) => `/clip/${r}/${i}/${side}.gif`;
+const count = (k) => `${k} answer${k === 1 ? "" : "s"}`;
+const LABELS = {left: 0, right: 1, equal: 0.5, skip: "skip"};
 
+// The answers of a round stay in the browser's storage until the app says it has saved them: a reload, a closed
+// tab or a failed submit loses none. They are kept by run and round, with a digest of the round's queries, so that
+// another run of the same name never gets them.
+function keep(failure = null) {
+  try {
+    localStorage.setItem(key, JSON.stringify({digest, answers, failure}));
+    storageProblem = null;
+  } catch (error) {
+    storageProblem = `this browser cannot keep your answers (${error.message}): a reload would lose them`;
+  }
+}
+function forget(storageKey = key) {
+  try { localStorage.removeItem(storageKey); } catch (error) { /* nothing was kept */ }
+}
+function kept(storageKey) {  // the answers kept under storageKey, or null
+  try {
+    const saved = JSON.parse(localStorage.getItem(storageKey));
+    if (Array.isArray(saved?.answers) && saved.answers.every((a) => Object.values(LABELS).includes(a))) return saved;
+  } catch (error) { /* none, or not the page's */ }
+  return null;
+}
+function forgetAnswered() {  // answers kept for rounds of this run that are no longer waiting: tell, then drop them
+  const prefix = `r2n-labels/${state.run}/`, told = [];
+  let storageKeys = [];
+  try { storageKeys = Object.keys(localStorage).filter((k) => k.startsWith(prefix)); } catch (error) { return; }
+  for (const storageKey of storageKeys) {
+    const r = Number(storageKey.slice(prefix.length)), saved = kept(storageKey);
+    if (state.round !== null && r >= state.round) continue;
+    const k = saved?.answers.length;
+    if (k) told.push(`your ${count(k)} to round ${r}, kept in this browser, ${k === 1 ? "was" : "were"} not used: ` +
+                     "it was answered elsewhere");
+    forget(storageKey);
+  }
+  if (told.length) $("message").textContent = told.join("; ");
+}
+function start() {  // the round the app says is waiting, with the answers this browser kept for it
+  round = state.round; n = state.n; digest = state.queries_digest; key = `r2n-labels/${state.run}/${round}`;
+  const saved = kept(key), ours = saved?.digest === digest && saved.answers.length <= n;
+  if (saved !== null && !ours) forget();  // kept for another run of the same name
+  answers = ours ? saved.answers : [];
+  if (answers.length)
+    $("message").textContent = `your ${count(answers.length)} to round ${round}, kept in this browser, are back` +
+      (saved.failure ? ` (the last submit: ${saved.failure})` : "");
+  show();
+}
+function enable(on) {
+  for (const button of document.querySelectorAll("#answers button")) button.disabled = !on;
+}
+function hide() {  // no round on the page
+  ++shown; ready = false; enable(false);
+  $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
+}
 function show() {  // the current query (one per answer so far), or the submit step after the last
   const i = answers.length, token = ++shown;
-  ready = false;
-  for (const button of document.querySelectorAll("#answers button")) button.disabled = true;
+  ready = false; enable(false);
   $("clips").hidden = true; $("answers").hidden = i === n; $("undo").hidden = i === 0;
   $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
   if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
@@ -327,33 +425,49 @@ function show() {  // the current query (one per answer so far), or the submit s
   $("left").src = clip(round, i, 0); $("right").src = clip(round, i, 1);
   Promise.all([$("left").decode(), $("right").decode()]).then(() => {
     if (token !== shown) return;
-    ready = true; $("clips").hidden = false;
-    for (const button of document.querySelectorAll("#answers button")) button.disabled = false;
+    $("clips").hidden = false;
     if (i + 1 < n) ahead = [0, 1].map((side) => Object.assign(new Image(), {src: clip(round, i + 1, side)}));
+    setTimeout(() => { if (token === shown) { ready = true; enable(true); } }, SHOWN_MS);
   }, () => {
     if (token === shown) $("message").textContent = `the clips of query ${i + 1} did not load: the app's output says why`;
   });
 }
 function answer(choice) {
   if (round === null || !ready) return;
-  answers.push({left: 0, right: 1, equal: 0.5, skip: "skip"}[choice]); show();
+  answers.push(LABELS[choice]); keep(); show();
 }
 function undo() {
   if (round === null || submitting || answers.length === 0) return;
-  answers.pop(); show();
+  answers.pop(); keep(); show();
+}
+function answeredElsewhere() {  // the round on the page is no longer waiting: someone else's answers were saved
+  const k = answers.length;
+  $("message").textContent = `round ${round} was answered elsewhere (another tab, another app or a script)` +
+    (k ? `: your ${count(k)} to it ${k === 1 ? "was" : "were"} not used` : "");
+  forget(); round = null; hide();
 }
 async function submit() {
   if (round === null || submitting || answers.length < n) return;
   submitting = true; $("submit").hidden = $("undo").hidden = true;
   $("progress").textContent = `round ${round}: saving...`;
+  let failure = null;
   try {
-    const reply = await fetch(`/api/labels/${round}`, {method: "POST", body: JSON.stringify(answers)});
-    $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)` : reply.status === 409
-      ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used`
-      : `round ${round} was not saved: ${await reply.text()}`;
-    round = null;
-  } catch (error) {  // the app is not there: keep the answers, to submit again
-    $("message").textContent = `round ${round} was not saved: the app does not answer (${error.message}); submit again`;
+    const reply = await fetch(`/api/labels/${round}`,
+      {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(answers)});
+    if (reply.ok || reply.status === 409) {  // saved, here or elsewhere: the answers are told about, then dropped
+      $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)`
+        : `round ${round} was already answered, perhaps in another tab: your answers for it were not used`;
+      forget(); round = null;
+    } else {
+      failure = `HTTP ${reply.status}: ${await reply.text()}`;
+    }
+  } catch (error) {  // the app is not there
+    failure = `the app does not answer: ${error.message}`;
+  }
+  if (failure !== null) {  // the answers stay, in the page and in the browser, to submit again
+    keep(failure);
+    $("message").textContent = `round ${round} was not saved (${failure}); your answers are kept in this browser: ` +
+      "submit again";
     show();
   }
   submitting = false; clearTimeout(timer); refresh();
@@ -375,6 +489,8 @@ function render() {
     notices.push(`the run is not responding (last heard ${Math.round(state.silent_for)} s ago): ` +
                  "running the same command again resumes it");
   if (t?.phase === "stopped") notices.push(`the run has stopped: ${t.message ?? "no reason given"}`);
+  if (state.teacher_problem !== null) notices.push(state.teacher_problem);
+  if (storageProblem !== null) notices.push(storageProblem);
   $("notices").replaceChildren(...notices.map((text) => Object.assign(document.createElement("p"), {textContent: text})));
   if (round === null && !submitting) $("progress").textContent = idle();
 }
@@ -383,27 +499,70 @@ async function refresh() {
     const reply = await fetch("/api/state");
     if (!reply.ok) throw new Error(await reply.text());
     state = await reply.json();
+    if (round !== null && !submitting && state.round !== round) answeredElsewhere();
     render();
-    if (round === null && !submitting && state.round !== null) { round = state.round; n = state.n; answers = []; show(); }
+    if (round === null && !submitting) {
+      forgetAnswered();
+      if (state.round !== null) start();
+    }
   } catch (error) {
     $("notices").replaceChildren(Object.assign(document.createElement("p"),
       {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
   }
   timer = setTimeout(refresh, 2000);
 }
-for (const choice of ["left", "equal", "right", "skip"]) $(`answer-${choice}`).onclick = () => answer(choice);
+for (const choice of Object.keys(LABELS)) $(`answer-${choice}`).onclick = () => answer(choice);
 $("undo").onclick = undo; $("submit").onclick = submit;
 document.addEventListener("keydown", (e) => {
   const choice = {ArrowLeft: "left", ArrowRight: "right", "=": "equal", " ": "equal", s: "skip"}[e.key];
   const action = choice ? () => answer(choice) : {Backspace: undo, Enter: submit}[e.key];
-  if (action) { e.preventDefault(); action(); }
+  if (!action) return;
+  e.preventDefault();
+  if (!e.repeat) action();  // a key held down acts once
 });
 refresh();
 </script></body></html>
 """
 
 
-def make_handler(run_dir: str, clips: Clips):
+class Address:
+    """The host names under which the app is this machine's, for the Host header of every request: the address it
+    binds, and for a loopback address (the default) `localhost`; for a wildcard address (0.0.0.0, ::), any IP address,
+    `localhost` and the machine's name. A name of someone else's that resolves to this machine (DNS rebinding) is
+    none of them. The port is not checked: an SSH tunnel may forward another one."""
+
+    def __init__(self, bound: str):
+        self.bound = bound.strip("[]").lower()
+        self.names = {self.bound}
+        self.any_ip = self.bound in ("", "0.0.0.0", "::")
+        if self.any_ip:
+            self.names |= {"localhost", socket.gethostname().lower()}
+        elif self.bound == "localhost" or is_ip(self.bound) and ipaddress.ip_address(self.bound).is_loopback:
+            self.names |= {"localhost", "127.0.0.1", "::1"}
+
+    def serves(self, host: Optional[str]) -> bool:
+        """Whether a request's Host header (`name`, `name:port`, `[v6]:port`) names this machine."""
+        match = re.fullmatch(r"(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+)(:\d+)?", host or "")
+        if not match:
+            return False
+        name = match.group(1).strip("[]").lower()
+        return name in self.names or self.any_ip and is_ip(name)
+
+    def __str__(self) -> str:
+        if self.any_ip:
+            return f"an IP address of this machine, localhost or {socket.gethostname()}"
+        return f"{self.bound} or localhost" if "localhost" in self.names - {self.bound} else self.bound
+
+
+def is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def make_handler(run_dir: str, clips: Clips, address: Address):
     class Handler(BaseHTTPRequestHandler):
         timeout = 60  # seconds: a client that sends less than its Content-Length does not hold a thread for ever
 
@@ -411,12 +570,27 @@ def make_handler(run_dir: str, clips: Clips):
             self.send_response(code)
             self.send_header("Content-Type", content_type)
             self.send_header("Content-Length", str(len(body)))
+            if code == HTTPStatus.METHOD_NOT_ALLOWED:
+                self.send_header("Allow", "GET, HEAD, POST")
             self.end_headers()
-            self.wfile.write(body)
+            if self.command != "HEAD":  # a reply to HEAD has the headers of GET's, and no body
+                self.wfile.write(body)
+
+        def send_error(self, code: int, message: Optional[str] = None, explain: Optional[str] = None):
+            """http.server's own refusals, as one line: a method without a `do_` method here (501 there) gets 405,
+            a malformed request its code and http.server's sentence."""
+            if code == HTTPStatus.NOT_IMPLEMENTED:
+                code = HTTPStatus.METHOD_NOT_ALLOWED
+                message = f"the method {self.command} is not allowed: the app answers GET, HEAD and POST"
+            self.close_connection = True
+            self.reply(code, (message or HTTPStatus(code).phrase).encode())
 
         def answer(self, route):
             """Answer with `route`'s reply; a refused request gets its code and one line, never a traceback."""
             try:
+                host = self.headers.get("Host")
+                if not address.serves(host):  # a page under another name (DNS rebinding)
+                    raise Refused(403, f"refused: {host or 'no Host header'} is not this app's address ({address})")
                 reply = route(urlsplit(self.path).path)
             except Refused as e:
                 reply = e.code, str(e).encode()
@@ -431,6 +605,9 @@ def make_handler(run_dir: str, clips: Clips):
             self.reply(*reply)
 
         def do_GET(self):
+            self.answer(self.get)
+
+        def do_HEAD(self):
             self.answer(self.get)
 
         def do_POST(self):
@@ -448,9 +625,18 @@ def make_handler(run_dir: str, clips: Clips):
             return 200, clips.gif(*map(int, match.groups())), "image/gif"
 
         def post(self, path: str) -> tuple:
+            origin = self.headers.get("Origin")  # a browser sends it with every POST; a script need not
+            if origin is not None and origin.lower() not in (f"http://{self.headers['Host']}".lower(),
+                                                             f"https://{self.headers['Host']}".lower()):
+                raise Refused(403, f"refused: only this app's page can write labels, not a page from {origin}")
             match = re.fullmatch(r"/api/labels/(\d+)", path)
             if not match:
                 raise Refused(404, f"no such page: {path}")
+            # a page may send another origin a form or text unasked, but JSON only after a preflight (OPTIONS),
+            # which gets 405 here
+            content_type = self.headers.get("Content-Type", "").split(";")[0].strip().lower()
+            if content_type != "application/json":
+                raise Refused(415, f"expected Content-Type: application/json, not {content_type or 'none'}")
             length = self.headers.get("Content-Length", "")
             if not re.fullmatch(r"\d+", length):
                 raise ValueError("expected a Content-Length header: the size of the body in bytes")
@@ -477,7 +663,8 @@ def main(args: Args) -> int:
         print(f"label_app: error: run_dir: no such folder: {args.run_dir}", file=sys.stderr)
         return 1
     try:
-        server = Server((args.host, args.port), make_handler(args.run_dir, Clips(args.run_dir, args.fps)))
+        handler = make_handler(args.run_dir, Clips(args.run_dir, args.fps), Address(args.host))
+        server = Server((args.host, args.port), handler)
     except OSError as e:
         flag = f"--port {args.port}" if e.errno == errno.EADDRINUSE else f"--host {args.host}"
         print(f"label_app: error: {flag}: {(e.strerror or str(e)).lower()}", file=sys.stderr)

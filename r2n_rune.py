@@ -964,13 +964,16 @@ class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
     run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop."""
+    sync to the training loop. With a `teacher` (`--teacher external`), it tells it every step, for the labelling
+    page (`ExternalTeacher.training`)."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
-        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, teacher=None):
+        self.total_steps, self.budget, self.interval, self.teacher = total_steps, budget, interval, teacher
         self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
     def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
+        if self.teacher is not None:
+            self.teacher.training(step, seconds)
         now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
@@ -1280,19 +1283,43 @@ class ExternalTeacher:
     come from `labels/{round}.json`, a JSON list with, per query, 1 (the second segment is preferred), 0 (the first),
     0.5 (equal) or "skip". The run reads a round's file once it is valid and records its SHA-256; a resume checks
     that the files it trained on are unchanged (`check_labels_unchanged`). `teacher.json` tells the labelling page
-    what the run is doing: waiting for a round (rewritten every poll), training, finished or stopped."""
+    what the run is doing: waiting for a round (rewritten every poll), training (its step rewritten every
+    `step_seconds`), finished or stopped."""
+
+    step_seconds = 2.0  # while training, the step in teacher.json is rewritten this often at most (the page polls
+                        # every 2 s)
 
     def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
         self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
         self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(), host=socket.gethostname(),
                         budget=args.max_feedback, total_steps=args.total_timesteps)
+        self.status, self.told = None, -math.inf  # the last status written; when the step was (training seconds)
+
+    def nap(self):
+        """Sleep `poll_seconds`, or until a stop signal: Python resumes a sleep after the signal's handler, so the
+        wait sleeps in short naps to end at once."""
+        until = time.monotonic() + self.poll_seconds
+        while not self.stop_signals and time.monotonic() < until:
+            time.sleep(0.05)
 
     def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
-        """Write `teacher.json` atomically: what the labelling page shows."""
-        status = dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked, labelled=labelled,
-                      step=step, message=message, updated=time.time())
+        """Write `teacher.json`: what the labelling page shows."""
+        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked, labelled=labelled,
+                        step=step, message=message))
+
+    def training(self, step: int, seconds: float):
+        """Called every step (`Progress.update`): while the run trains after a round, `teacher.json` says the current
+        step, rewritten every `step_seconds` of training (`seconds`) at most."""
+        if self.status is None or self.status["phase"] != "training" or seconds - self.told < self.step_seconds:
+            return
+        self.told = seconds
+        self.write(dict(self.status, step=step))
+
+    def write(self, status: dict):
+        """Write `status` as `teacher.json`, atomically, with the time of writing."""
+        self.status = dict(status, updated=time.time())
         with open(f"{self.folder}/teacher.json.tmp", "w") as f:
-            json.dump(status, f)
+            json.dump(self.status, f)
         os.replace(f"{self.folder}/teacher.json.tmp", f"{self.folder}/teacher.json")
 
     def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
@@ -1309,6 +1336,9 @@ class ExternalTeacher:
               f"label_app.py {self.folder})", flush=True)
         while True:
             if self.stop_signals:
+                import gc
+
+                gc.freeze()  # the run ends: its exit need not collect torch's objects and the run's (a second or more)
                 raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
                               f"round is saved: run the same command with --run-name {self.run['run']} to resume")
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
@@ -1322,7 +1352,7 @@ class ExternalTeacher:
                 problem = f"labels: {path}: {problem}; waiting for a corrected file"
                 print(problem, flush=True)
             self.tell("waiting", step, asked, labelled, round_index, n, problem)
-            time.sleep(self.poll_seconds)
+            self.nap()
         answers = np.array([np.nan if a == "skip" else a for a in json.loads(content)], np.float32)
         keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
         self.tell("training", step, asked + n, labelled + int(keep.sum()))
@@ -1340,13 +1370,20 @@ def check_labels_unchanged(folder: str, queries: dict):
                              f"back as it was (the run's preferences.npz holds its labels, round {round_index})")
 
 
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+
+
 def labels_problem(content: bytes, n: int) -> Optional[str]:
-    """Why a labels file's bytes are not n valid answers, or None."""
+    """Why a labels file's bytes are not n valid answers (a JSON list, each exactly 0, 1, 0.5 or "skip"), or None.
+    The labelling page checks by the same rule (label_app.parse_answers)."""
+    number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
-        answers = json.loads(content)
+        answers = json.loads(content, parse_int=number, parse_float=number, parse_constant=number)
     except (ValueError, RecursionError) as e:  # a UnicodeDecodeError and a JSONDecodeError are ValueErrors
         return f"not JSON ({type(e).__name__})"
-    if not isinstance(answers, list) or len(answers) != n or any(a not in (0, 1, 0.5, "skip") for a in answers):
+    # true and false are bools, which Python counts as 1 and 0
+    if not isinstance(answers, list) or len(answers) != n or any(
+            isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
         return f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"'
     return None
 
@@ -1489,7 +1526,7 @@ if __name__ == "__main__":
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
     external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
-    progress = Progress(args.total_timesteps, args.max_feedback)
+    progress = Progress(args.total_timesteps, args.max_feedback, teacher=external)
     obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only

@@ -422,13 +422,16 @@ class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
     run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop."""
+    sync to the training loop. With a `teacher` (`--teacher external`), it tells it every step, for the labelling
+    page (`ExternalTeacher.training`)."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0):
-        self.total_steps, self.budget, self.interval = total_steps, budget, interval
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, teacher=None):
+        self.total_steps, self.budget, self.interval, self.teacher = total_steps, budget, interval, teacher
         self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
     def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
+        if self.teacher is not None:
+            self.teacher.training(step, seconds)
         now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return

@@ -6,8 +6,9 @@ import hashlib
 import json
 import os
 import signal
-
 import sys
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -57,8 +58,10 @@ def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_
         "labelled": 5, "budget": 10,
     }
     asked = queries_of(run, 1)
+    signalled = time.monotonic()
     process.send_signal(signal.SIGTERM)
     assert process.wait(timeout=60) == 1
+    assert time.monotonic() - signalled < 1  # at once: a person's stop is not kept waiting
     last = open(log).read().strip().splitlines()[-1]
     assert "stopped by SIGTERM while waiting for runs/ext/labels/1.json" in last and "--run-name ext to resume" in last
     assert status(run)["phase"] == "stopped" and status(run)["message"] in last
@@ -111,6 +114,28 @@ def test_a_kill_during_the_first_round_resumes_into_it(tmp_path):
     assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
     for key, value in queries_of(run, 0).items():
         np.testing.assert_array_equal(value, asked[key])
+
+
+def test_teacher_json_says_the_step_while_training(tmp_path):
+    """While the run trains, `teacher.json` says its current step: rewritten every 2 s of training at most (the
+    page polls every 2 s), not at every step; waiting, it is the wait's."""
+    args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=1500)
+    teacher = pebble.ExternalTeacher(str(tmp_path), args, stop_signals=[])
+    progress = pebble.Progress(total_steps=1500, budget=10, teacher=teacher)
+    progress.update(0, "random", seconds=0.0, feedback=0)
+    assert not (tmp_path / "teacher.json").exists()  # before the first round, the page reads the run's files
+    teacher.tell("training", 500, asked=5, labelled=4)
+    steps = []
+    for step in range(501, 601):
+        progress.update(step, "PbRL", seconds=step / 16, feedback=5)  # 16 steps per second of training
+        steps.append(status(tmp_path)["step"])
+    assert sorted(set(steps)) == [501, 533, 565, 597]  # at once, then every 2 s
+    assert {key: status(tmp_path)[key] for key in ("phase", "asked", "labelled", "round")} == {
+        "phase": "training", "asked": 5, "labelled": 4, "round": None}
+    assert time.time() - status(tmp_path)["updated"] < 60
+    teacher.tell("waiting", 1000, asked=5, labelled=4, round_index=1, queries=5)
+    progress.update(1000, "PbRL", seconds=1000.0, feedback=5)
+    assert status(tmp_path)["phase"] == "waiting" and status(tmp_path)["step"] == 1000
 
 
 def test_the_progress_rate_counts_training_time_only(capsys):

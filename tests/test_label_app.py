@@ -1,19 +1,25 @@
 """The labelling page (README: "Labelling by hand"), on a run folder written by hand: labels written once (409 for a
-second answer, a malformed file set aside, never deleted), the run's state from `teacher.json`, bad requests, and
-the page in a real headless Chromium (two tabs, clips before answers, undo, the run's states)."""
+second answer, a malformed file set aside, never deleted), by the page's own origin only, the run's state from
+`teacher.json`, bad requests, and the page in a real headless Chromium (two tabs, clips shown before answers, undo,
+answers kept through a reload and a server error, a round answered elsewhere, a double click and a held key, another
+origin's page, the run's states)."""
 import contextlib
 import http.client
+import http.server
 import json
 import os
+import resource
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
 import pytest
 
+from label_examples import INVALID, VALID
 from test_labelling import answers_enabled, chrome, free_port, needs_chromium
 from test_scripts import ROOT
 
@@ -45,11 +51,14 @@ def write_teacher(run, **changes):
 
 
 @contextlib.contextmanager
-def serve(run, **env):
-    """The app on a free port, as a subprocess: yields its address; afterwards, its output has no traceback."""
+def serve(run, processes=None, **env):
+    """The app on a free port, as a subprocess: yields its address (and appends its process to `processes`, if
+    given); afterwards, its output has no traceback."""
     port = free_port()
     app = subprocess.Popen([sys.executable, LABEL_APP, str(run), "--port", str(port)], stdout=subprocess.PIPE,
                            stderr=subprocess.STDOUT, text=True, env=dict(os.environ, OMP_NUM_THREADS="1", **env))
+    if processes is not None:
+        processes.append(app)
     try:
         assert app.stdout.readline().startswith(f"labelling {run} at http://127.0.0.1:{port}"), "the app did not start"
         yield f"127.0.0.1:{port}"
@@ -59,20 +68,25 @@ def serve(run, **env):
     assert "Traceback" not in output, output
 
 
-def request(address, method, path, body=None, headers=None):
-    """(status, body) of one request, with exactly the given headers (a POST gets its Content-Length unless given)."""
+JSON = {"Content-Type": "application/json"}
+
+
+def request(address, method, path, body=None, headers=None, reply_headers=False):
+    """(status, body) of one request, with exactly the given headers (a body gets its Content-Length and the JSON
+    Content-Type unless headers are given; Host is the address unless given); with `reply_headers`, (status, body,
+    the reply's headers)."""
     connection = http.client.HTTPConnection(address, timeout=30)
-    connection.putrequest(method, path)
-    headers = {"Content-Length": str(len(body))} if headers is None and body is not None else headers or {}
+    headers = {"Content-Length": str(len(body)), **JSON} if headers is None and body is not None else headers or {}
+    connection.putrequest(method, path, skip_host="Host" in headers)
     for key, value in headers.items():
         connection.putheader(key, value)
     connection.endheaders()
     if body is not None:
         connection.send(body)
     reply = connection.getresponse()
-    result = reply.status, reply.read()
+    result = reply.status, reply.read(), dict(reply.getheaders())
     connection.close()
-    return result
+    return result if reply_headers else result[:2]
 
 
 def get_state(address):
@@ -97,6 +111,18 @@ def test_label_app_writes_a_round_once(tmp_path):
         assert json.loads((run / "labels" / "1.json").read_text()) == [0.5, 1, "skip"]
         assert get_state(address)["round"] is None
     assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
+
+
+def test_label_app_takes_exactly_the_labels_the_run_takes():
+    """The page's check of a labels file, on the table the run's check is tested on (tests/label_examples.py)."""
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    for content, n in VALID:
+        assert label_app.parse_answers(content, n) == json.loads(content), content
+    for content, n in INVALID:
+        with pytest.raises(ValueError):
+            label_app.parse_answers(content, n)
 
 
 def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
@@ -136,10 +162,12 @@ def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
     (run / "labels" / "1.json").write_text("[1, 0]")
     with serve(run) as address:
         # no teacher.json (an older run, or one that has not asked yet): the files alone
-        assert get_state(address) == {
+        state = get_state(address)
+        assert len(state.pop("queries_digest")) == 16
+        assert state == {
             "run": "ext", "task": "cartpole-swingup", "round": 1, "n": 3,
             "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "rounds_answered": 1, "labels": 2,
-            "teacher": None, "silent_for": None}
+            "teacher": None, "teacher_problem": None, "silent_for": None}
         write_teacher(run, round=1, asked=3, labelled=2)
         state = get_state(address)
         assert state["teacher"]["phase"] == "waiting" and state["labels"] == 2 and state["silent_for"] is None
@@ -168,21 +196,126 @@ def test_label_app_answers_bad_requests_and_serves_on(tmp_path):
             ("GET", "/clip/0/0/2.gif", None, None, 404),
             ("POST", "/api/other", b"[]", None, 404),
             ("POST", "/api/labels/1", b"[0, 0, 0]", None, 404),  # a round without queries
-            ("POST", "/api/labels/0", None, {}, 400),  # no Content-Length
-            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "three"}, 400),
-            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "-9"}, 400),
+            ("POST", "/api/labels/0", None, JSON, 400),  # no Content-Length
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "three", **JSON}, 400),
+            ("POST", "/api/labels/0", b"[0, 0, 0]", {"Content-Length": "-9", **JSON}, 400),
             ("POST", "/api/labels/0", b"[0, 0,", None, 400),
             ("POST", "/api/labels/0", b"\xff\xfe", None, 400),
             ("POST", "/api/labels/0", nested, None, 400),
             ("POST", "/api/labels/0", b"[0, 2, 0]", None, 400),
             ("POST", "/api/labels/0", b"[0, 1]", None, 400),
             ("POST", "/api/labels/0", b'{"answers": [0, 1, 0]}', None, 400),
-            ("POST", "/api/labels/0", None, {"Content-Length": "70000"}, 413),  # refused before a body is sent
+            ("POST", "/api/labels/0", None, {"Content-Length": "70000", **JSON}, 413),  # refused before a body is sent
         ]:
             status, reply = request(address, method, path, body, headers)
             assert status == code and len(reply.decode().splitlines()) == 1, (method, path, status, reply)
             assert get_state(address)["round"] == 0  # serving on, nothing written
         assert not (run / "labels").exists() or os.listdir(run / "labels") == []
+
+
+def test_label_app_writes_for_its_own_page_only(tmp_path):
+    """Another origin's page, a DNS rebinding (a host name of the attacker's that resolves to this machine) and a
+    body that is not JSON cannot write labels; the page's own origin and a script (no Origin header) can."""
+    run = make_run(tmp_path, (3, 3, 3))
+    with serve(run) as address:
+        port = address.split(":")[1]
+        body = b"[0, 0, 0]"
+        length = {"Content-Length": str(len(body))}
+        for headers, code in [
+            ({**length, **JSON, "Origin": "http://evil.example"}, 403),
+            ({**length, **JSON, "Origin": f"http://127.0.0.1:{int(port) + 1}"}, 403),  # another port: another origin
+            ({**length, **JSON, "Origin": "null"}, 403),  # a sandboxed frame or a file
+            ({**length, **JSON, "Host": f"evil.example:{port}", "Origin": f"http://evil.example:{port}"}, 403),
+            ({**length, **JSON, "Host": f"127.0.0.1.evil.example:{port}"}, 403),
+            ({**length, **JSON, "Host": f"evil.example@127.0.0.1:{port}"}, 403),
+            ({**length, "Content-Type": "text/plain"}, 415),  # what a page may send to another origin unasked
+            ({**length, "Content-Type": "application/x-www-form-urlencoded"}, 415),
+            ({**length, "Content-Type": "multipart/form-data; boundary=x"}, 415),
+            (length, 415),
+        ]:
+            status, reply = request(address, "POST", "/api/labels/0", body, headers)
+            assert status == code and len(reply.decode().splitlines()) == 1, (headers, status, reply)
+        for path in ("/", "/api/state", "/clip/0/0/0.gif"):  # a rebound name reads nothing either
+            status, reply = request(address, "GET", path, headers={"Host": f"evil.example:{port}"})
+            assert status == 403 and reply.decode() == (
+                f"refused: evil.example:{port} is not this app's address (127.0.0.1 or localhost)"), reply
+        # a preflight, which a page needs to send JSON to another origin, is refused
+        status, reply, headers = request(address, "OPTIONS", "/api/labels/0", headers={
+            "Origin": "http://evil.example", "Access-Control-Request-Method": "POST",
+            "Access-Control-Request-Headers": "content-type"}, reply_headers=True)
+        assert status == 405 and not [key for key in headers if key.lower().startswith("access-control-")]
+        assert not (run / "labels").exists() or os.listdir(run / "labels") == []
+        # the page's own origin, under each name of this machine's loopback address; a script sends no Origin
+        for r, host in enumerate([f"127.0.0.1:{port}", f"localhost:{port}", f"LocalHost:{port}"]):
+            headers = {**length, "Content-Type": "application/json; charset=utf-8", "Host": host,
+                       "Origin": f"http://{host.lower()}"}
+            assert request(address, "POST", f"/api/labels/{r}", body, headers)[0] == 200, host
+        assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json", "2.json"]
+
+
+def test_label_app_host_names():
+    """The names a request's Host may give, by the address the app binds: any port (a tunnel may forward another)."""
+    sys.path.insert(0, ROOT)
+    import label_app
+
+    loopback, wildcard, lan = (label_app.Address(bound) for bound in ("127.0.0.1", "0.0.0.0", "192.168.1.5"))
+    for host in ("127.0.0.1:8000", "localhost:8000", "LOCALHOST:9000", "[::1]:8000", "localhost"):
+        assert loopback.serves(host) and wildcard.serves(host), host
+    for host in ("192.168.1.5:8000", "10.0.0.7:8000", "[fe80::1]:8000", f"{socket.gethostname()}:8000"):
+        assert wildcard.serves(host) and not loopback.serves(host), host
+    assert lan.serves("192.168.1.5:8000") and not lan.serves("localhost:8000") and not lan.serves("10.0.0.7:8000")
+    for host in (None, "", "evil.example:8000", "127.0.0.1.nip.io:8000", "localhost.evil.example", "a@127.0.0.1:8000",
+                 "127.0.0.1:80:80", "127.0.0.1 :8000"):
+        assert not loopback.serves(host) and not wildcard.serves(host), host
+    assert (str(loopback), str(label_app.Address("localhost")), str(lan)) == (
+        "127.0.0.1 or localhost", "localhost", "192.168.1.5")
+
+
+def test_label_app_other_methods_get_one_line(tmp_path):
+    """Methods other than GET, HEAD and POST: 405 and one line; HEAD is GET without the body."""
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        for method in ("PUT", "DELETE", "PATCH", "OPTIONS", "TRACE", "CONNECT", "BREW"):
+            status, reply, headers = request(address, method, "/api/labels/0", b"[0, 0, 0]", reply_headers=True)
+            assert status == 405 and headers["Allow"] == "GET, HEAD, POST", (method, status)
+            assert reply.decode() == f"the method {method} is not allowed: the app answers GET, HEAD and POST"
+        host, port = address.split(":")
+        with socket.create_connection((host, int(port)), timeout=30) as raw:
+            raw.sendall(b"GET /a b HTTP/1.1\r\n\r\n")  # a malformed request line: http.server's own 400
+            reply = http.client.HTTPResponse(raw)
+            reply.begin()
+            assert reply.status == 400 and reply.read() == b"Bad request syntax ('GET /a b HTTP/1.1')"
+        status, reply, headers = request(address, "HEAD", "/api/state", reply_headers=True)
+        assert status == 200 and reply == b"" and int(headers["Content-Length"]) > 0
+        assert headers["Content-Type"] == "application/json"
+        assert request(address, "HEAD", "/nothing")[0] == 404
+        assert get_state(address)["round"] == 0
+    assert not (run / "labels").exists()
+
+
+def test_label_app_state_with_a_teacher_json_it_cannot_read(tmp_path):
+    """A `teacher.json` that is not the run's: the state from the files, and one line saying why, not a 500."""
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        for text, problem in [
+            ('{"phase": "training", "step": 3}', "teacher.json cannot be read (it lacks the keys task, run, pid, "
+                                                  "host, round, queries, asked, labelled, budget, total_steps, "
+                                                  "message, updated): the page shows what the run's files say"),
+            ("[1, 2]", "teacher.json cannot be read (not a JSON object): the page shows what the run's files say"),
+            ("{", "teacher.json cannot be read (not JSON: Expecting property name enclosed in double quotes: line 1 "
+                  "column 2 (char 1)): the page shows what the run's files say"),
+        ]:
+            (run / "teacher.json").write_text(text)
+            state = get_state(address)
+            assert state["teacher_problem"] == problem and state["teacher"] is None and state["round"] == 0
+        for key, value in [("updated", "yesterday"), ("pid", "1234"), ("pid", 0), ("pid", 2 ** 80), ("pid", True)]:
+            write_teacher(run, **{key: value})
+            state = get_state(address)
+            assert state["teacher_problem"] == f"teacher.json cannot be read ({key} is {json.dumps(value)}, not a "  \
+                f"{'positive whole number' if key == 'pid' else 'number'}): the page shows what the run's files say"
+            assert state["teacher"] is None
+        write_teacher(run)
+        assert get_state(address)["teacher_problem"] is None
 
 
 def test_label_app_port_in_use(tmp_path):
@@ -230,12 +363,18 @@ def test_label_app_two_tabs_answering_a_round_in_a_headless_browser(tmp_path):
             WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
         answer_round(first, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], submit=False)
         answer_round(second, [Keys.ARROW_RIGHT, "="], submit=False)
+        # the second tab hears nothing from the app until it submits, so it cannot see the round answered before
+        second.execute_cdp_cmd("Network.enable", {})
+        second.execute_cdp_cmd("Network.setBlockedURLs", {"urls": ["*/api/state"]})
+        WebDriverWait(second, 30).until(lambda d: texts[1]("notices").startswith("the page could not get the run's state"))
         answer_round(first, [])  # the first tab submits first and wins
         WebDriverWait(first, 30).until(lambda d: texts[0]("message") == "round 0 saved (labels/0.json)")
         answer_round(second, [])
         WebDriverWait(second, 30).until(lambda d: texts[1]("message") == (
             "round 0 was already answered, perhaps in another tab: your answers for it were not used"))
         assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]
+        assert stored(first) == stored(second) == {}  # told, then dropped
+        second.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
         for driver, text in zip((first, second), texts):  # both move on
             WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
 
@@ -339,3 +478,175 @@ def test_label_app_run_states_in_a_headless_browser(tmp_path):
         driver.save_screenshot(str(tmp_path / "label_app_finished.png"))
         if os.environ.get("R2N_SCREENSHOT_FINISHED"):  # to refresh the README's picture
             shutil.copy(tmp_path / "label_app_finished.png", os.environ["R2N_SCREENSHOT_FINISHED"])
+        (run / "teacher.json").write_text('{"phase": "training"}')  # not the run's: the files say what they can
+        WebDriverWait(driver, 30).until(lambda d: text("notices").startswith("teacher.json cannot be read (it lacks "))
+        assert text() == "no round is waiting for labels; this page checks every 2 s"
+
+
+def stored(driver):
+    """The answers the page keeps in this browser, by key."""
+    return driver.execute_script("return Object.fromEntries(Object.entries(localStorage))")
+
+
+def answer_queries(driver, keys, first, n=3):
+    """Answer queries `first`, `first` + 1, ... of the round shown (of n), one key each once the page takes answers."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    text = lambda: driver.find_element(By.ID, "progress").text  # noqa: E731
+    body = driver.find_element(By.TAG_NAME, "body")
+    for i, key in enumerate(keys, first):
+        WebDriverWait(driver, 60).until(lambda d: text().endswith(f": query {i} of {n}") and answers_enabled(d))
+        body.send_keys(key)
+        WebDriverWait(driver, 30).until(lambda d: not text().endswith(f": query {i} of {n}"))
+
+
+@needs_chromium
+def test_label_app_keeps_answers_through_a_reload_and_a_server_error_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    apps = []
+    with serve(run, apps) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], first=1)
+        driver.refresh()  # mid-round: the two answers are kept
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 3 of 3")
+        assert text("message") == "your 2 answers to round 0, kept in this browser, are back"
+        answer_queries(driver, ["="], first=3)
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
+        # the app cannot write a byte, as on a full disk: HTTP 500
+        resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (0, resource.RLIM_INFINITY))
+        answer_round(driver, [])
+        failure = "HTTP 500: OSError: [Errno 27] File too large"
+        WebDriverWait(driver, 30).until(lambda d: text("message") == (
+            f"round 0 was not saved ({failure}); your answers are kept in this browser: submit again"))
+        assert text() == "round 0: all 3 answered"
+        driver.refresh()  # after the failure: the answers are kept, and the page says what failed
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: all 3 answered")
+        assert text("message") == f"your 3 answers to round 0, kept in this browser, are back (the last submit: {failure})"
+        resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+        answer_round(driver, [])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5]
+        assert stored(driver) == {}  # saved: the browser's copy is gone
+        assert os.listdir(run / "labels") == ["0.json"]  # the failed write left nothing behind
+        driver.refresh()
+        WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+        assert text("message") == ""
+
+
+@needs_chromium
+def test_label_app_notices_a_round_answered_elsewhere_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3, 3))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT], first=1)
+        assert text() == "round 0: query 2 of 3"
+        assert request(address, "POST", "/api/labels/0", b"[1, 1, 1]")[0] == 200  # another tab, or a script
+        # told within a poll, before answering more of it: the next answer is round 1's
+        WebDriverWait(driver, 30).until(lambda d: text("message") == (
+            "round 0 was answered elsewhere (another tab, another app or a script): your 1 answer to it was not used"))
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 1: query 1 of 3")
+        assert stored(driver) == {}
+        answer_queries(driver, [Keys.ARROW_RIGHT], first=1)
+        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 1, 1]
+        assert [json.loads(value)["answers"] for value in stored(driver).values()] == [[1]]
+        # the page closed mid-round, and the round answered meanwhile: told when the page opens again
+        driver.get("about:blank")
+        assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 200
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+        assert text("message") == "your 1 answer to round 1, kept in this browser, was not used: it was answered elsewhere"
+        assert stored(driver) == {}
+
+
+def prefetched(driver, query):
+    """Whether both clips of `query` of round 0 have arrived in the browser (fetched ahead, not shown yet)."""
+    return driver.execute_script("""
+        const query = arguments[0];
+        return [0, 1].every((side) =>
+            performance.getEntriesByName(new URL(`/clip/0/${query}/${side}.gif`, location).href).length > 0);
+    """, query)
+
+
+@needs_chromium
+def test_label_app_one_answer_per_double_click_or_held_key_in_a_headless_browser(tmp_path):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (4,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 4" and answers_enabled(d))
+        WebDriverWait(driver, 60).until(lambda d: prefetched(d, 1))  # query 2's clips are ready at once
+        right = driver.find_element(By.ID, "answer-right")
+        ActionChains(driver).click(right).pause(0.15).click().perform()  # a double click
+        WebDriverWait(driver, 60).until(answers_enabled)
+        assert text() == "round 0: query 2 of 4"
+        WebDriverWait(driver, 60).until(lambda d: prefetched(d, 2))
+        # ← held down for 2 s: one keydown, then the keyboard's repeats
+        key = {"key": "ArrowLeft", "code": "ArrowLeft", "windowsVirtualKeyCode": 37, "nativeVirtualKeyCode": 37}
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "rawKeyDown", **key})
+        for _ in range(40):
+            time.sleep(0.05)  # the keyboard's repeat rate
+            driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "rawKeyDown", "autoRepeat": True, **key})
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyUp", **key})
+        WebDriverWait(driver, 60).until(lambda d: answers_enabled(d) or d.find_element(By.ID, "submit").is_displayed())
+        assert text() == "round 0: query 3 of 4"
+        answer_round(driver, ["=", "s"])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 0, 0.5, "skip"]
+
+
+@contextlib.contextmanager
+def another_origin(page: str):
+    """`page` served from another origin: a second tiny server, on another port of this machine."""
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html; charset=utf-8")
+            self.send_header("Content-Length", str(len(page.encode())))
+            self.end_headers()
+            self.wfile.write(page.encode())
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"127.0.0.1:{server.server_port}"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@needs_chromium
+def test_label_app_another_origin_cannot_write_labels_in_a_headless_browser(tmp_path):
+    """Any page the labeller opens could try to answer the pending round: without CORS (text, as a form may send)
+    the app refuses its Origin and its Content-Type; with JSON the browser asks first (a preflight), and the app
+    refuses that."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        attack = f"""<!doctype html><title>attacking</title><script>
+            const target = "http://{address}/api/labels/0", body = "[0, 0, 0]";
+            Promise.allSettled([
+                fetch(target, {{method: "POST", mode: "no-cors", headers: {{"Content-Type": "text/plain"}}, body}}),
+                fetch(target, {{method: "POST", headers: {{"Content-Type": "application/json"}}, body}}),
+            ]).then((results) => {{ document.title = results.map((result) => result.status).join(" "); }});
+        </script>"""
+        with another_origin(attack) as elsewhere, contextlib.closing(chrome()) as driver:
+            driver.get(f"http://{elsewhere}/")
+            WebDriverWait(driver, 60).until(lambda d: d.title != "attacking")
+            # the first was sent (its reply is opaque to the page), the second never left the browser
+            assert driver.title == "fulfilled rejected"
+        assert not (run / "labels").exists()
+        assert get_state(address)["round"] == 0

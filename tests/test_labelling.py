@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import torch
 
+from label_examples import INVALID, VALID
 from test_scripts import ROOT, SPARSE_TINY, TINY, run_script, scalars
 
 sys.path.insert(0, ROOT)
@@ -66,6 +67,12 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     _, simulated = pebble.teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
     assert answers == simulated.tolist()  # the oracle teacher's labels, on the same queries
     (run / "labels" / "0.json").write_text(json.dumps(answers))
+    # training on: teacher.json says the current step (the page shows it), not the round's
+    def training_on():
+        teacher = json.loads((run / "teacher.json").read_text())
+        return teacher["phase"] == "training" and teacher["step"] > 500
+
+    wait_for(training_on, process, log, seconds=120)
     # round 1: an equal and a skip among them
     wait_for(lambda: (run / "queries" / "1.npz").exists(), process, log)
     with np.load(run / "queries" / "1.npz") as data:
@@ -85,6 +92,14 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     central = slice(5, 25) if "surf" in script else slice(None)
     np.testing.assert_array_equal(saved["obs"][:5, :, central], queries["obs"])
     np.testing.assert_array_equal(saved["physics"][:5, :, central], queries["physics"])
+
+
+def test_the_run_takes_exactly_the_labels_the_page_takes():
+    """The run's check of a labels file, on the table the page's check is tested on (tests/label_examples.py)."""
+    for content, n in VALID:
+        assert pebble.labels_problem(content, n) is None, content
+    for content, n in INVALID:
+        assert pebble.labels_problem(content, n) is not None, content
 
 
 def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
@@ -215,7 +230,8 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
             np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
             assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files]  # per round
         WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
-        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST")
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST",
+                                         headers={"Content-Type": "application/json"})
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(request, timeout=30)
         assert refused.value.code == 409 and (run / "labels" / "1.json").read_bytes() == files[1]
