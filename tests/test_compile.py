@@ -84,13 +84,19 @@ def test_compiled_steps_match_eager_within_tolerance(script, monkeypatch):
     torch.testing.assert_close(compiled_agent.log_alpha, eager_agent.log_alpha, rtol=1e-4, atol=1e-5)
 
 
+# Every phase, shortest: 10 compiled pre-training updates from step 200, a feedback round at 210, compiled SAC updates
+# on the learned reward, and an evaluation at 260.
+COMPILED_RUN = ["--unsup-steps", "10", "--total-timesteps", "260", "--eval-freq", "260"]
+
+
 @needs_compiler
 def test_a_compiled_run_records_its_flag_and_a_resume_may_not_flip_it(tmp_path):
-    result = run_script("pebble.py", TINY + ["--compile", "--run-name", "c", "--keep-state"], tmp_path)
+    result = run_script("pebble.py", TINY + COMPILED_RUN + ["--compile", "--run-name", "c", "--keep-state"], tmp_path)
     assert result.returncode == 0
     values = scalars(str(tmp_path / "runs" / "c"))
     assert all(torch.isfinite(torch.tensor(values["eval/episodic_return"])))
-    refused = run_script("pebble.py", TINY + ["--run-name", "c"], tmp_path, check=False)
+    assert values["pbrl/total_feedback"] == [5] and len(values["losses/qf1_loss"]) > 0
+    refused = run_script("pebble.py", TINY + COMPILED_RUN + ["--run-name", "c"], tmp_path, check=False)
     assert refused.returncode == 1 and "the saved run differs in --compile True (now False)" in refused.stderr
 
 
