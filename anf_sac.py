@@ -18,7 +18,8 @@ Two uses: the upper bound ("SAC with the true reward") for the PbRL curves at th
 redraws the noise columns of replay minibatches, as ANF does; the critics bootstrap on `terminated` only);
 `make_critic` stays a function (PEBBLE resets the critic) so that the shared code is byte-identical.
 
-Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
+Only `ene.py`, the noisy environment, is shared with the other scripts.
+`--help` documents every flag.
 """
 # ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent. ANF (Grooten et al., "Automatic Noise
 # Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) with the agent half of the R2N patch
@@ -292,22 +293,6 @@ class ReplayBuffer:
         obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
         return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
 
-    def state_dict(self) -> dict:
-        """The stored rows only, and `next_obs` only where it is not the next row's `obs` (episode ends, newest row)."""
-        n = self.size
-        rows = {name: x[:n] if n == len(x) else x[:n].clone()  # a slice alone would save the whole preallocation
-                for name, x in vars(self).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
-        own = torch.ones(n, dtype=torch.bool, device=self.obs.device)
-        own[:-1] = (self.next_obs[: n - 1].view(torch.int32) != self.obs[1:n].view(torch.int32)).any(1)  # bitwise
-        return {"pos": self.pos, "size": n, "rows": rows, "own_next_obs": own, "next_obs": self.next_obs[:n][own]}
-
-    def load_state_dict(self, state: dict):
-        self.pos, self.size, n = state["pos"], state["size"], state["size"]
-        for name, x in state["rows"].items():
-            getattr(self, name)[:n] = x
-        self.next_obs[: n - 1] = self.obs[1:n]
-        self.next_obs[:n][state["own_next_obs"].to(self.obs.device)] = state["next_obs"].to(self.obs.device)
-
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
 def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> torch.Tensor:
@@ -495,16 +480,20 @@ class Loop:
     sac_updates: int = 0
     episode_return: float = 0.0
     episode_length: int = 0
-    episode_start: Optional[dict] = None  # the env's RNG state at the episode's start (None: the seeded first reset)
-    episode_actions: list = field(default_factory=list)  # the episode's actions so far, to replay it on a resume
+    # resume only: the env's RNG state at the episode's start (None: the seeded first reset), and the episode's actions
+    # so far, to replay the episode on a resume
+    episode_start: Optional[dict] = None
+    episode_actions: list = field(default_factory=list)
     losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
     last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
 
 
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
-    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`. The optimiser steps run
-    eagerly, apart from the gradients: `--cuda-graph` replays the gradients and the targets' update only."""
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
+
+    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`, `actor_gradients`,
+    `target_update`) with compiled or captured versions of themselves. The optimiser steps always run eagerly."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -668,8 +657,10 @@ PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of t
 
 
 def state_of(obj):
-    """A tensor itself, `obj.state_dict()`, a dataclass field by field, or for another plain object (episode store,
-    statistics) its tensors and numbers."""
+    """What `state.pt` keeps of an object.
+
+    That is a tensor itself, `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
+    or for another plain object (episode store, statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
     if hasattr(obj, "state_dict"):
@@ -677,7 +668,42 @@ def state_of(obj):
     if dataclasses.is_dataclass(obj):
         return {name: value if isinstance(value, PLAIN) else state_of(value)
                 for name, value in vars(obj).items()}
+    if hasattr(obj, "size"):
+        return stored_rows(obj)
     return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+
+
+def stored_rows(buffer) -> dict:
+    """A buffer's numbers and the first `size` rows of its tensors: a slice alone would save the whole preallocation.
+
+    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`, that is at episode ends and in the
+    newest row. The comparison is bitwise."""
+    n = buffer.size
+    state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
+    state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
+                     for name, x in vars(buffer).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
+    if hasattr(buffer, "next_obs"):
+        own = torch.ones(n, dtype=torch.bool, device=buffer.obs.device)
+        own[:-1] = (buffer.next_obs[: n - 1].view(torch.int32) != buffer.obs[1:n].view(torch.int32)).any(1)
+        state["own_next_obs"], state["next_obs"] = own, buffer.next_obs[:n][own]
+    return state
+
+
+def load_stored_rows_(buffer, state: dict):
+    """Restore what `stored_rows` saved, in place."""
+    for name, rows in state["rows"].items():
+        full = getattr(buffer, name)
+        if full.shape[1:] != rows.shape[1:]:  # a buffer that allocates its rows at the first add (SURF's segments)
+            full = full.new_zeros((len(full), *rows.shape[1:]))
+            setattr(buffer, name, full)
+        full[: len(rows)] = rows
+    if "next_obs" in state:
+        n, own = state["size"], state["own_next_obs"].to(buffer.obs.device)
+        buffer.next_obs[: n - 1] = buffer.obs[1:n]
+        buffer.next_obs[:n][own] = state["next_obs"].to(buffer.obs.device)
+    for name, value in state.items():
+        if isinstance(value, (int, float)):
+            setattr(buffer, name, value)
 
 
 @torch.no_grad()
@@ -693,6 +719,8 @@ def load_state_(obj, state):
                 setattr(obj, name, value)
             else:
                 load_state_(getattr(obj, name), value)
+    elif hasattr(obj, "size"):
+        load_stored_rows_(obj, state)
     else:
         for name, value in state.items():
             if isinstance(value, torch.Tensor):

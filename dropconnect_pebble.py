@@ -22,7 +22,8 @@ first round, we do not); every query asked counts against the budget, labels act
 accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
 the current reward ensemble and is overwritten by the next relabel.
 
-Only `ene.py`, the noisy environment, is shared with the other scripts; `--help` documents every flag.
+Only `ene.py`, the noisy environment, is shared with the other scripts.
+`--help` documents every flag.
 """
 # DROPCONNECT PATCH (DropConnect-PEBBLE): PEBBLE with DropConnect on the reward models' input layers (an R2N paper
 # baseline). DropConnect (Wan et al., ICML 2013), simplified as is common: in every reward-training forward pass each
@@ -375,22 +376,6 @@ class ReplayBuffer:
         obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
         return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
 
-    def state_dict(self) -> dict:
-        """The stored rows only, and `next_obs` only where it is not the next row's `obs` (episode ends, newest row)."""
-        n = self.size
-        rows = {name: x[:n] if n == len(x) else x[:n].clone()  # a slice alone would save the whole preallocation
-                for name, x in vars(self).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
-        own = torch.ones(n, dtype=torch.bool, device=self.obs.device)
-        own[:-1] = (self.next_obs[: n - 1].view(torch.int32) != self.obs[1:n].view(torch.int32)).any(1)  # bitwise
-        return {"pos": self.pos, "size": n, "rows": rows, "own_next_obs": own, "next_obs": self.next_obs[:n][own]}
-
-    def load_state_dict(self, state: dict):
-        self.pos, self.size, n = state["pos"], state["size"], state["size"]
-        for name, x in state["rows"].items():
-            getattr(self, name)[:n] = x
-        self.next_obs[: n - 1] = self.obs[1:n]
-        self.next_obs[:n][state["own_next_obs"].to(self.obs.device)] = state["next_obs"].to(self.obs.device)
-
     @torch.no_grad()
     def relabel(self, reward_fn, chunk: int):
         """Rewrite every stored reward (the whole buffer, also after it wrapped) with `reward_fn([obs, action])`."""
@@ -407,7 +392,8 @@ class EpisodeStore:
         self.slots = max_episodes + 1  # one slot is being written while the others hold complete episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
-        self.physics = np.zeros((self.slots, episode_length, 0))  # host-side MuJoCo states, to render queries again
+        # labelling by hand only: the host-side MuJoCo states, to draw a queried segment again
+        self.physics = np.zeros((self.slots, episode_length, 0))
         self.max_episodes, self.episode_length, self.obs_dim = max_episodes, episode_length, obs_dim
         self.n_complete, self.t = 0, 0
 
@@ -452,13 +438,6 @@ class PreferenceBuffer:
 
     def read(self, indices: torch.Tensor):
         return read_noisy(self.segments[indices], self.noise), self.labels[indices]
-
-    def state_dict(self) -> dict:
-        return {"segments": self.segments[: self.size].clone(), "labels": self.labels[: self.size].clone()}
-
-    def load_state_dict(self, state: dict):
-        self.size = 0
-        self.add(state["segments"].to(self.labels.device), state["labels"].to(self.labels.device))
 
 
 # ALGO LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
@@ -565,12 +544,6 @@ def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, s
         score = -(p * p.clamp_min(1e-12).log() + (1 - p) * (1 - p).clamp_min(1e-12).log()).mean(0)
     top = score.topk(n_queries).indices
     return segments[top], true_rewards[top], *(states[top.cpu().numpy()] for states in physics)
-
-
-def optimizer_steps(optimizer) -> int:
-    """Optimiser steps taken so far, from Adam's own count (a wrapper's inner `optimizer` is read through)."""
-    states = getattr(optimizer, "optimizer", optimizer).state.values()
-    return max((int(state["step"]) for state in states), default=0)
 
 
 class RunningMeanStd:
@@ -708,8 +681,10 @@ class Loop:
     labeled_feedback: int = 0  # labels obtained (a skipping teacher gives fewer)
     episode_return: float = 0.0
     episode_length: int = 0
-    episode_start: Optional[dict] = None  # the env's RNG state at the episode's start (None: the seeded first reset)
-    episode_actions: list = field(default_factory=list)  # the episode's actions so far, to replay it on a resume
+    # resume only: the env's RNG state at the episode's start (None: the seeded first reset), and the episode's actions
+    # so far, to replay the episode on a resume
+    episode_start: Optional[dict] = None
+    episode_actions: list = field(default_factory=list)
     recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
     losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
     last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
@@ -717,8 +692,10 @@ class Loop:
 
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
-    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`. The optimiser steps run
-    eagerly, apart from the gradients: `--cuda-graph` replays the gradients and the targets' update only."""
+    `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
+
+    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`, `actor_gradients`,
+    `target_update`) with compiled or captured versions of themselves. The optimiser steps always run eagerly."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -745,7 +722,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
         with_physics=True,
     )
     waited, sha256 = 0.0, ""
-    if external and n_queries:  # a person or a program answers
+    if external and n_queries:  # labelling by hand: a person or a program answers (RUN PLUMBING's ExternalTeacher)
         keep, labels, sha256, waited = external.ask(queries.next_round, args.env_id, obs_dim, segments, true_rewards,
                                                     physics, global_step, loop.total_feedback, loop.labeled_feedback)
     else:
@@ -754,13 +731,10 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
             true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
             args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
         )
-    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics,
-                torch.where(keep, labels, torch.nan).cpu().numpy(), queries.next_round, global_step, sha256)
-    queries.save(f"{run_folder}/preferences.npz", args.env_id, obs_dim)
+    log_queries(queries, f"{run_folder}/preferences.npz", args.env_id, obs_dim, segments, true_rewards, physics,
+                torch.where(keep, labels, torch.nan), global_step, sha256)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
-    writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
-    writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
     if prefs.size:  # a round may yield no label at all (skipping teacher)
         loss, accuracy, epochs = train_reward(
             reward_model, reward_optimizer, prefs, args.reward_batch_size, args.reward_epochs, args.reward_stop_accuracy,
@@ -771,9 +745,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
         writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
         check_finite({"pbrl/reward_loss": loss}, global_step)
     rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
-    writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
-    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
-                           args.diagnostic_pairs, args.segment_size)
+    log_round(writer, global_step, loop, args, reward_model, reward_optimizer, rb, episodes, diagnostic_positions)
     return waited
 
 
@@ -933,8 +905,10 @@ PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of t
 
 
 def state_of(obj):
-    """A tensor itself, `obj.state_dict()`, a dataclass field by field, or for another plain object (episode store,
-    statistics) its tensors and numbers."""
+    """What `state.pt` keeps of an object.
+
+    That is a tensor itself, `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
+    or for another plain object (episode store, statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
     if hasattr(obj, "state_dict"):
@@ -942,7 +916,42 @@ def state_of(obj):
     if dataclasses.is_dataclass(obj):
         return {name: value if isinstance(value, PLAIN) else state_of(value)
                 for name, value in vars(obj).items()}
+    if hasattr(obj, "size"):
+        return stored_rows(obj)
     return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+
+
+def stored_rows(buffer) -> dict:
+    """A buffer's numbers and the first `size` rows of its tensors: a slice alone would save the whole preallocation.
+
+    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`, that is at episode ends and in the
+    newest row. The comparison is bitwise."""
+    n = buffer.size
+    state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
+    state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
+                     for name, x in vars(buffer).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
+    if hasattr(buffer, "next_obs"):
+        own = torch.ones(n, dtype=torch.bool, device=buffer.obs.device)
+        own[:-1] = (buffer.next_obs[: n - 1].view(torch.int32) != buffer.obs[1:n].view(torch.int32)).any(1)
+        state["own_next_obs"], state["next_obs"] = own, buffer.next_obs[:n][own]
+    return state
+
+
+def load_stored_rows_(buffer, state: dict):
+    """Restore what `stored_rows` saved, in place."""
+    for name, rows in state["rows"].items():
+        full = getattr(buffer, name)
+        if full.shape[1:] != rows.shape[1:]:  # a buffer that allocates its rows at the first add (SURF's segments)
+            full = full.new_zeros((len(full), *rows.shape[1:]))
+            setattr(buffer, name, full)
+        full[: len(rows)] = rows
+    if "next_obs" in state:
+        n, own = state["size"], state["own_next_obs"].to(buffer.obs.device)
+        buffer.next_obs[: n - 1] = buffer.obs[1:n]
+        buffer.next_obs[:n][own] = state["next_obs"].to(buffer.obs.device)
+    for name, value in state.items():
+        if isinstance(value, (int, float)):
+            setattr(buffer, name, value)
 
 
 @torch.no_grad()
@@ -958,6 +967,8 @@ def load_state_(obj, state):
                 setattr(obj, name, value)
             else:
                 load_state_(getattr(obj, name), value)
+    elif hasattr(obj, "size"):
+        load_stored_rows_(obj, state)
     else:
         for name, value in state.items():
             if isinstance(value, torch.Tensor):
@@ -1247,6 +1258,30 @@ def file_sha256(path: str) -> Optional[str]:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+def log_queries(queries: "QueryLog", path: str, env_id: str, obs_dim: int, segments: torch.Tensor,
+                true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
+    """Add a round's queries to the run's query log and write it to `preferences.npz` (labels: NaN where skipped)."""
+    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), queries.next_round,
+                step, sha256)
+    queries.save(path, env_id, obs_dim)
+
+
+def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
+              episodes, diagnostic_positions: torch.Tensor):
+    """The tags of a feedback round: the feedback counts, the reward optimiser's steps and the reward diagnostics."""
+    writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
+    writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
+    writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
+    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
+                           args.diagnostic_pairs, args.segment_size)
+
+
+def optimizer_steps(optimizer) -> int:
+    """Optimiser steps taken so far, for `pbrl/reward_steps`: Adam's own count (through a wrapper's `optimizer`)."""
+    states = getattr(optimizer, "optimizer", optimizer).state.values()
+    return max((int(state["step"]) for state in states), default=0)
+
+
 @torch.no_grad()
 def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
                            positions: torch.Tensor, n_pairs: int, segment_size: int):
@@ -1382,8 +1417,11 @@ if __name__ == "__main__":
     obs = torch.as_tensor(obs, device=device)
     last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
-    pbrl = (loop, args, reward_model, reward_optimizer, episodes, prefs, rb, queries, diagnostic_positions, writer,
-            run_folder, external)  # what a feedback round reads and changes
+    round_objects = dict(  # what a feedback round reads and changes, by name
+        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes,
+        prefs=prefs, rb=rb, queries=queries, diagnostic_positions=diagnostic_positions, writer=writer,
+        run_folder=run_folder, external=external,
+    )
     try:
         for global_step in range(start_step, args.total_timesteps):
             phase = ("random" if global_step < args.learning_starts
@@ -1427,7 +1465,7 @@ if __name__ == "__main__":
                     sac_update(agent, data._replace(rewards=intrinsic_reward), loop, args)
                     loop.losses["state_entropy_reward"] = intrinsic_reward.mean()
                 elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
-                    start_time += feedback_round("uniform", global_step, *pbrl)
+                    start_time += feedback_round("uniform", global_step, **round_objects)
                     agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = make_critic(
                         obs_dim, act_dim, args, device
                     )
@@ -1435,7 +1473,7 @@ if __name__ == "__main__":
                         sac_update(agent, rb.sample(args.batch_size), loop, args)
                 else:
                     if feedback_due(global_step, pebble_start, loop, args):
-                        start_time += feedback_round(args.query_sampling, global_step, *pbrl)
+                        start_time += feedback_round(args.query_sampling, global_step, **round_objects)
                     sac_update(agent, rb.sample(args.batch_size), loop, args)
 
                 if global_step % args.log_freq == 0:
