@@ -121,7 +121,8 @@ def test_every_relative_link_and_anchor_of_the_docs_resolves():
     files = documentation_files(ROOT)
     assert "README.md" in files and any(name.startswith("docs/") for name in files), files
     assert sum(1 for name in files for _ in links(open(os.path.join(ROOT, name), encoding="utf-8").read())) > 100
-    assert problems(ROOT, files) == []
+    found = problems(ROOT, files)
+    assert not found, "links that do not resolve:\n" + "\n".join(found)
 
 
 def test_github_slugs():
