@@ -1,4 +1,4 @@
-# docs and usage can be found in README.md, in the section named after this file
+# docs and usage: docs/analyze.md
 """The paper's tables and plots from local TensorBoard runs.
 
 Reads every run under `--log-dirs` (searched recursively; a run is one `events.out.tfevents.*` file, the scripts write
@@ -249,7 +249,7 @@ def read_run(path: str, whole_folder: bool = False) -> Run:
 
 
 def read_folder(paths: list) -> list:
-    """The runs of the event files of one folder. A run resumed from its `state.pt` (README: "Resuming a run") wrote
+    """The runs of the event files of one folder. A run resumed from its `state.pt` (docs/running.md: "Resuming a run") wrote
     one file per start, and only the first has the hyperparameter table: those files are read together as one run.
     Files that each have the table are runs of their own that shared the folder."""
     runs = []

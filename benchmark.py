@@ -1,7 +1,7 @@
-# docs and usage can be found in README.md, in the section named after this file
+# docs and usage: docs/benchmark.md
 """Launch the paper's experiments: a grid of (method, task, noise, budget, seed) runs, locally or on SLURM.
 
-Presets (`--preset`) are the paper's experiments and this project's studies (README, `benchmark.py`); `--methods`, `--env-ids`, `--noises`,
+Presets (`--preset`) are the paper's experiments and this project's studies (docs/benchmark.md); `--methods`, `--env-ids`, `--noises`,
 `--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid. Each run has a
 deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
 `python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...` plus
@@ -32,7 +32,7 @@ Choices where the issue is silent:
 - Methods: a method is a script `{method}.py` in `--script-dir`, or a variant in `VARIANTS` (script + flags). Methods
   in `NO_FEEDBACK` (SAC oracles) get no `--max-feedback`; their id says `budgetnone`.
 - Run folders: every run gets `--run-name {run_id}`, so its folder is `runs/{run_id}` and re-running the sweep
-  resumes an interrupted run from its `state.pt` (README: "Resuming a run"). A folder without a state (a run that
+  resumes an interrupted run from its `state.pt` (docs/running.md: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
 import ctypes
@@ -86,8 +86,8 @@ class Preset(NamedTuple):
     feedback_flags: tuple = ()  # appended to the commands of the PbRL methods (feedback schedule)
 
 
-# The CPU study (README, "Results"): the paper's claim at a scale that runs in <= 20 minutes on one CPU core.
-# Fixed before any of its runs was looked at; see the README for why each value.
+# The CPU study (results/cpu-study/README.md): the paper's claim at a scale that runs in <= 20 minutes on one CPU core.
+# Fixed before any of its runs was looked at; its README says why each value.
 CPU_STUDY_FLAGS = ("--total-timesteps", "80000", "--hidden-dim", "256", "--batch-size", "128")
 CPU_STUDY_FEEDBACK = ("--feedback-freq", "2000", "--queries-per-round", "25")  # 16 rounds: 400 labels by step 40 000
 CPU_STUDY_MAIN, CPU_STUDY_HARDER = (("cartpole-swingup", 0.9, 400),), (("cartpole-swingup", 0.95, 400),)
@@ -179,7 +179,7 @@ class Args:
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
-    `cpu-study`, the README's CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
+    `cpu-study`, the CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
     confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`); `imitate`,
     imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms);
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,

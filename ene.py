@@ -1,4 +1,4 @@
-# docs: README.md#enepy
+# docs: docs/ene.md
 """Extremely Noisy Environment (ENE), the one module every script shares.
 
 An ENE (Grooten et al., "Automatic Noise Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) takes a

@@ -1,4 +1,4 @@
-# docs and usage can be found in README.md, in the section "Labelling by hand"
+# docs and usage: docs/labelling.md
 """A local web page for labelling the queries of a run started with `--teacher external`, by hand.
 
     python label_app.py runs/RUN_NAME            # then open http://localhost:8000

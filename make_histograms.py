@@ -1,4 +1,4 @@
-# docs and experiment results can be found in README.md, in the section named after this file
+# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
 """Real-feature histograms for `--noise-type imitate`, from deterministic rollouts of a noise-free SAC policy.
 
 The R2N paper's imitating noise (after ANF, Grooten et al., AAMAS 2023): noise feature i draws from the histogram of

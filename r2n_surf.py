@@ -1,4 +1,4 @@
-# docs and experiment results can be found in README.md, in the section named after this file
+# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
 """SURF on PEBBLE: semi-supervised reward learning with temporal cropping, in an Extremely Noisy Environment.
 
 Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
@@ -243,7 +243,7 @@ class Args:
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
     teacher: Literal["simulated", "external"] = "simulated"
-    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (README: labelling)"""
+    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (docs/labelling.md)"""
     preferences: Optional[str] = None
     """an earlier run's `preferences.npz`: its labels seed the reward model's dataset (they count in the budget)"""
 
@@ -1078,7 +1078,7 @@ class CudaGraph:
         return self.outputs
 
 
-# the training state `state.pt`, for exact resume (README: "Resuming a run")
+# the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
 # the flags a resume may change, and no others: none of them touches training
 RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
                    "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval")
@@ -1301,7 +1301,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     return obs, start_step, resume["elapsed"]
 
 
-# the queries and labels of a run (`preferences.npz`) and the external teacher (README: labelling)
+# the queries and labels of a run (`preferences.npz`) and the external teacher (docs/labelling.md)
 def write_npz(path: str, **arrays):
     """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -1361,7 +1361,7 @@ def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
 
 
 class ExternalTeacher:
-    """`--teacher external` (README: "Labelling by hand"): a round's queries go to `queries/{round}.npz`, its labels
+    """`--teacher external` (docs/labelling.md): a round's queries go to `queries/{round}.npz`, its labels
     come from `labels/{round}.json`, a JSON list with, per query, 1 (the second segment is preferred), 0 (the first),
     0.5 (equal) or "skip". The run reads a round's file once it is valid and records its SHA-256; a resume checks
     that the files it trained on are unchanged (`check_labels_unchanged`). `teacher.json` tells the labelling page

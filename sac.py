@@ -1,4 +1,4 @@
-# docs and experiment results can be found in README.md, in the section named after this file
+# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
 """SAC on the true reward, in an Extremely Noisy Environment: the oracle of the preference-based scripts.
 
 Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside `pebble.py` (same
@@ -482,7 +482,7 @@ class CudaGraph:
         return self.outputs
 
 
-# the training state `state.pt`, for exact resume (README: "Resuming a run")
+# the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
 # the flags a resume may change, and no others: none of them touches training
 RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
                    "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval")

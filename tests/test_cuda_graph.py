@@ -1,5 +1,5 @@
 """Issue 19 on a GPU: `--cuda-graph` replays the SAC steps' gradients (and the targets' update) as CUDA graphs.
-Skipped where torch sees no GPU, as on CI (README: "Testing on a GPU"). On a GPU:
+Skipped where torch sees no GPU, as on CI (docs/running.md: "Testing on a GPU"). On a GPU:
 - all 12 scripts, through every phase (pre-training, the critic reset and its re-capture, feedback rounds, topology
   updates), give the same TensorBoard points and final weights with and without `--cuda-graph`;
 - after a critic reset the graphs train the new critic (their captured tensors are the new networks' storage);

@@ -1,4 +1,4 @@
-"""A person's labels and waiting time are safe (README: "Labelling by hand"): the run records the SHA-256 of each
+"""A person's labels and waiting time are safe (docs/labelling.md): the run records the SHA-256 of each
 labels file it trains on and a resume refuses a changed one; a state is written before every round, so SIGTERM
 while waiting, or a kill before any other state, resumes into the same queries; `teacher.json` says what the run
 does; the wait does not count in the progress line's rate."""

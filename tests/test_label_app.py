@@ -1,4 +1,4 @@
-"""The labelling page (README: "Labelling by hand"), on a run folder written by hand: labels written once (409 for a
+"""The labelling page (docs/labelling.md), on a run folder written by hand: labels written once (409 for a
 second answer, a malformed file set aside, never deleted), by the page's own origin only, the run's state from
 `teacher.json`, bad requests, and the page in a real headless Chromium (two tabs, clips shown before answers, undo,
 answers kept through a reload and a server error, a round answered elsewhere, a double click and a held key, another

@@ -1,4 +1,4 @@
-"""Real preferences (README: "Labelling by hand"): `preferences.npz`, the external-teacher file protocol with a
+"""Real preferences (docs/labelling.md): `preferences.npz`, the external-teacher file protocol with a
 scripted teacher, `--preferences` reuse, and the labelling page in a real headless Chromium."""
 import hashlib
 import json

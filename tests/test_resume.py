@@ -1,4 +1,4 @@
-"""Exact resume (README: "Resuming a run"): a run killed at a random moment after its first `state.pt` and started
+"""Exact resume (docs/running.md: "Resuming a run"): a run killed at a random moment after its first `state.pt` and started
 again with the same command ends exactly as an uninterrupted run: the same points in TensorBoard (SPS aside, whose
 values are wall-clock), no duplicate, no gap, and bitwise-identical final weights. Also: a kill during the write of
 the state, SIGTERM, and the checks on `--run-name` and on flags that changed."""

@@ -15,7 +15,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PBRL_SCRIPTS = ["pebble.py", "r2n_pebble.py"]
 SPARSE_SCRIPTS = ["r2n_pebble.py"]
 # CI has no GPU, so the script tests run on the CPU; R2N_TEST_CUDA=1 runs them on the GPU, R2N_TEST_CUDA=graph on the
-# GPU with `--cuda-graph` (README: "Testing on a GPU")
+# GPU with `--cuda-graph` (docs/running.md: "Testing on a GPU")
 DEVICE = {"1": "--cuda", "graph": "--cuda-graph"}.get(os.environ.get("R2N_TEST_CUDA"), "--no-cuda")
 
 # Tiny but complete: random steps (0-199), pre-training (200-499), first feedback round + critic reset at 500,
