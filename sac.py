@@ -411,16 +411,16 @@ class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
     run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop. With a `teacher` (`--teacher external`), it tells it every step, for the labelling
-    page (`ExternalTeacher.training`)."""
+    sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)` at every step: the labelling
+    page's status of a run that a person labels."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, teacher=None):
-        self.total_steps, self.budget, self.interval, self.teacher = total_steps, budget, interval, teacher
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
+        self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
         self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
     def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
-        if self.teacher is not None:
-            self.teacher.training(step, seconds)
+        if self.on_step is not None:
+            self.on_step(step, seconds)
         now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
@@ -437,7 +437,6 @@ class Progress:
     def duration(seconds: float) -> str:
         minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
         return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
-
 
 
 class CudaGraph:

@@ -832,16 +832,9 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
         reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
         with_physics=True,
     )
-    waited, sha256 = 0.0, ""
-    if external and n_queries:  # labelling by hand: a person or a program answers (RUN PLUMBING's ExternalTeacher)
-        keep, labels, sha256, waited = external.ask(queries.next_round, args.env_id, obs_dim, segments, true_rewards,
-                                                    physics, global_step, loop.total_feedback, loop.labeled_feedback)
-    else:
-        margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
-        keep, labels = teacher(
-            true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
-            args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
-        )
+    keep, labels, sha256, waited = ask_teacher(
+        external, queries.next_round, args, loop, obs_dim, segments, true_rewards, physics, global_step,
+    )
     log_queries(queries, f"{run_folder}/preferences.npz", args.env_id, obs_dim, segments, true_rewards, physics,
                 torch.where(keep, labels, torch.nan), global_step, sha256)
     prefs.add(segments[keep], labels[keep])
@@ -904,16 +897,16 @@ class Progress:
     """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
     SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
     run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop. With a `teacher` (`--teacher external`), it tells it every step, for the labelling
-    page (`ExternalTeacher.training`)."""
+    sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)` at every step: the labelling
+    page's status of a run that a person labels."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, teacher=None):
-        self.total_steps, self.budget, self.interval, self.teacher = total_steps, budget, interval, teacher
+    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
+        self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
         self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
     def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
-        if self.teacher is not None:
-            self.teacher.training(step, seconds)
+        if self.on_step is not None:
+            self.on_step(step, seconds)
         now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
@@ -930,7 +923,6 @@ class Progress:
     def duration(seconds: float) -> str:
         minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
         return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
-
 
 
 class CudaGraph:
@@ -1374,6 +1366,23 @@ def file_sha256(path: str) -> Optional[str]:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, loop, obs_dim: int,
+                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray, step: int) -> tuple:
+    """A round's labels: (answered mask, labels, the labels file's SHA-256, seconds waited).
+
+    A person or a program answers through files where there is an external teacher (labelling by hand); else
+    B-Pref's simulated teacher answers from the segments' true rewards."""
+    if external and len(segments):
+        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics, step,
+                            loop.total_feedback, loop.labeled_feedback)
+    margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
+    keep, labels = teacher(
+        true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
+        args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
+    )
+    return keep, labels, "", 0.0
+
+
 def log_queries(queries: "QueryLog", path: str, env_id: str, obs_dim: int, segments: torch.Tensor,
                 true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
     """Add a round's queries to the run's query log and write it to `preferences.npz` (labels: NaN where skipped)."""
@@ -1529,7 +1538,7 @@ if __name__ == "__main__":
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
     external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
-    progress = Progress(args.total_timesteps, args.max_feedback, teacher=external)
+    progress = Progress(args.total_timesteps, args.max_feedback, on_step=external.training if external else None)
     obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only

@@ -121,7 +121,7 @@ def test_teacher_json_says_the_step_while_training(tmp_path):
     page polls every 2 s), not at every step; waiting, it is the wait's."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=1500)
     teacher = pebble.ExternalTeacher(str(tmp_path), args, stop_signals=[])
-    progress = pebble.Progress(total_steps=1500, budget=10, teacher=teacher)
+    progress = pebble.Progress(total_steps=1500, budget=10, on_step=teacher.training)  # as the main loop wires it
     progress.update(0, "random", seconds=0.0, feedback=0)
     assert not (tmp_path / "teacher.json").exists()  # before the first round, the page reads the run's files
     teacher.tell("training", 500, asked=5, labelled=4)
