@@ -78,10 +78,12 @@ def gym_mujoco_class(env_id: str) -> Optional[type]:
     spec = gym.registry.get(env_id)
     if spec is None:
         return None
-    try:
-        creator = gym.envs.registration.load_env_creator(spec.entry_point)
-    except Exception:  # a family whose dependencies are not installed (Box2D, ...)
-        return None
+    creator = spec.entry_point  # a class, a function, or the "module:name" of one
+    if isinstance(creator, str):
+        try:
+            creator = gym.envs.registration.load_env_creator(creator)
+        except Exception:  # a family whose dependencies are not installed (Box2D, ...)
+            return None
     if isinstance(creator, type) and issubclass(creator, MujocoEnv):
         return creator
     return None  # another family, or MuJoCo's v2 and v3, which need mujoco-py
@@ -461,7 +463,11 @@ def make_gym_task(env_id: str, episode_length: int, render_mode: Optional[str] =
     if "terminate_when_unhealthy" in inspect.signature(gym_mujoco_class(env_id)).parameters:
         kwargs["terminate_when_unhealthy"] = False  # a fall is a state to learn from, not the end of the episode
     # gymnasium's own limit (1000 steps for most tasks) is replaced, so that `episode_length` decides
-    env = gym.make(env_id, max_episode_steps=episode_length, **kwargs)
+    try:
+        env = gym.make(env_id, max_episode_steps=episode_length, **kwargs)
+    except (ImportError, gym.error.Error) as e:  # a task this install cannot run: Pusher-v4 needs mujoco < 3
+        reason = str(e).splitlines()[0]
+        raise ValueError(f"--env-id {env_id}: gymnasium cannot make this task here ({reason})") from None
     space = env.observation_space
     if not (isinstance(space, gym.spaces.Box) and len(space.shape) == 1):
         env.close()
