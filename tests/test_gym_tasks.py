@@ -16,7 +16,7 @@ from test_scripts import DEVICE, run_script, scalars
 
 # Every phase in 300 steps: random (0-99), pre-training (100-199), one feedback round with the critic reset at 200,
 # SAC updates on the learned reward, an evaluation and the checkpoint at 300. Episodes of 50 steps: at 200, four
-# complete ones to cut segments from. A small buffer keeps each process small, since the runs go two at a time.
+# complete ones to cut segments from. A small buffer keeps each process small.
 GYM_TINY = [
     "--noise", "0.9", "--total-timesteps", "300", "--learning-starts", "100", "--episode-length", "50",
     "--eval-freq", "300", "--eval-episodes", "1", "--hidden-dim", "32", "--batch-size", "32", "--log-freq", "100",
@@ -56,7 +56,7 @@ def test_smoke_reaches_every_phase(script, env_id, tmp_path):
     assert not missing, f"missing tags {missing}"
     for tag, points in values.items():
         assert all(math.isfinite(v) for v in points), f"{tag} has non-finite values {points}"
-    # episodes of exactly --episode-length steps: Hopper falls within them under random actions, and goes on
+    # episodes of exactly --episode-length steps, on Hopper too, whose body falls under random actions
     assert values["charts/episodic_length"] == [50] * len(values["charts/episodic_length"])
     assert len(values["charts/episodic_length"]) == 6
     assert len(values["eval/episodic_return"]) == 1 and result.stdout.count("eval_return=") == 1
