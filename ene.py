@@ -438,9 +438,10 @@ class FixedHorizon(gym.Wrapper):
 
 
 class StateVideo(gym.Wrapper):
-    """`render()` draws the current physics state with `MujocoFrames`: the frames `RecordVideo` films."""
+    """`render()` draws the current physics state with `MujocoFrames`: the frames `RecordVideo` films, at the size of
+    dm_control's videos and of the labelling page's clips."""
 
-    def __init__(self, env: gym.Env, height: int = 480, width: int = 480):
+    def __init__(self, env: gym.Env, height: int = 240, width: int = 320):
         super().__init__(env)
         self.draw = MujocoFrames(env.unwrapped, height, width)
 
