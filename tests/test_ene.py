@@ -666,6 +666,7 @@ def test_gym_replay_episode_and_generators():
     assert not np.array_equal(replayed[:11], obs[:11]) and np.array_equal(replayed[11:], obs[11:])
 
 
+@pytest.mark.filterwarnings("ignore:.*is out of date:DeprecationWarning")  # gymnasium's advice to use v5, for v4
 def test_every_gymnasium_mujoco_task_runs_with_the_noise():
     """Any registered MuJoCo task of gymnasium: flat float32 observations with the noise, fixed-length episodes; one
     this install cannot run (Pusher-v4 needs mujoco < 3) is refused with one line."""
