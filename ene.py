@@ -345,8 +345,8 @@ class MujocoFrames:
     """Frames of the physics states of a gymnasium MuJoCo task, from the model's tracking camera ("track"; in a model
     without one, gymnasium's free camera, placed from the model's initial state).
 
-    It draws on a data of its own, brought to the state: after a step, the task's own data holds the positions of the
-    last substep's start, a little behind the state. So a video and the labelling page draw a state alike."""
+    It draws on an MjData of its own, set to the state: after a step, the task's own MjData holds the positions of the
+    last substep's start, a little behind the state. So videos and the labelling page draw a state the same way."""
 
     def __init__(self, task, height: int, width: int):
         import mujoco
@@ -354,7 +354,7 @@ class MujocoFrames:
 
         self.model = task.model
         self.data = mujoco.MjData(self.model)
-        mujoco.mj_forward(self.model, self.data)
+        mujoco.mj_forward(self.model, self.data)  # the model's initial state, positions included
         self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, width)  # the frame fits the buffer
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
         camera = task.mujoco_renderer.default_cam_config
