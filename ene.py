@@ -2,13 +2,16 @@
 """Extremely Noisy Environment (ENE), the one module every script shares.
 
 An ENE (Grooten et al., "Automatic Noise Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) takes a
-dm_control task and appends task-irrelevant features to its observation, so that a fraction `noise` of all
-features is noise:
+dm_control task (`cheetah-run`) or a gymnasium MuJoCo task (`HalfCheetah-v5`) and appends task-irrelevant features to
+its observation, so that a fraction `noise` of all features is noise:
 
     D_total = ceil(D_obs / (1 - noise))  (plain float arithmetic),  N_noise = D_total - D_obs
 
 which reproduces the R2N paper's table exactly: cartpole 5 -> 51, walker 24 -> 241, cheetah 17 -> 171,
 quadruped 78 -> 260 (the paper prints 68 by mistake), humanoid 67 -> 224.
+
+Episodes have exactly `episode_length` steps, truncated, never terminated: reward learning cuts segments from whole
+episodes. Gymnasium tasks that end an episode when the body falls run with `terminate_when_unhealthy=False`.
 
 Noise features are i.i.d. N(0, 1) (`noise_type="gaussian"`) or imitate the real features (`"imitate"`: noise
 feature i draws from the histogram of real feature i mod D_obs). Real features come first, noise after, no shuffle.
@@ -26,6 +29,8 @@ What the scripts use:
 """
 
 import atexit
+import inspect
+import logging
 import math
 import multiprocessing
 import os
@@ -40,9 +45,13 @@ import torch
 # dm_control tries the GLFW renderer first and GLFW warns when there is no display; headless runs need no renderer
 # (set MUJOCO_GL=egl or osmesa to record videos), so the warning is only noise in every run's console.
 warnings.filterwarnings("ignore", message=".*The DISPLAY environment variable is missing")
+# gymnasium's half_cheetah.xml uses `settotalmass`, which MuJoCo deprecates: MuJoCo warns (through dm_control's absl
+# logger) at every load of the model. It is gymnasium's to fix, not the user's.
+logging.getLogger("absl").addFilter(lambda record: "'settotalmass' is deprecated" not in record.getMessage())
 
 HISTOGRAM_BINS = 100
 NOISE_TYPES = ("gaussian", "imitate")
+GYM_EXAMPLES = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5")  # ANF's tasks
 
 
 def total_obs_dim(obs_dim_real: int, noise: float) -> int:
@@ -60,6 +69,29 @@ def dmc_tasks() -> list[str]:
     from dm_control import suite
 
     return [f"{domain}-{task}" for domain, task in suite.ALL_TASKS]
+
+
+def gym_mujoco_class(env_id: str) -> Optional[type]:
+    """The class gymnasium registers as `env_id` if it is a MuJoCo task (`HalfCheetah-v5`), else None."""
+    from gymnasium.envs.mujoco import MujocoEnv  # imports mujoco: not before a caller has set MUJOCO_GL
+
+    spec = gym.registry.get(env_id)
+    if spec is None:
+        return None
+    creator = spec.entry_point  # a class, a function, or the "module:name" of one
+    if isinstance(creator, str):
+        try:
+            creator = gym.envs.registration.load_env_creator(creator)
+        except Exception:  # a family whose dependencies are not installed (Box2D, ...)
+            return None
+    if isinstance(creator, type) and issubclass(creator, MujocoEnv):
+        return creator
+    return None  # another family, or MuJoCo's v2 and v3, which need mujoco-py
+
+
+def gym_mujoco_tasks() -> list[str]:
+    """Every gymnasium MuJoCo task registered (`HalfCheetah-v5`, `Hopper-v4`, ...)."""
+    return [env_id for env_id in gym.registry if gym_mujoco_class(env_id) is not None]
 
 
 def load_histograms(path: str) -> dict:
@@ -170,17 +202,25 @@ class NoisyObservation(gym.ObservationWrapper):
 
     def rng_state(self) -> dict:
         """Every generator of the env: the task's (initial states), the noise features' and the action space's."""
-        return {"task": self.unwrapped.np_random.get_state(), "noise": self.noise_rng.bit_generator.state,
+        task_rng = self.unwrapped.np_random  # dm_control's is a RandomState, gymnasium's a Generator
+        task = task_rng.bit_generator.state if isinstance(task_rng, np.random.Generator) else task_rng.get_state()
+        return {"task": task, "noise": self.noise_rng.bit_generator.state,
                 "action_space": self.action_space.np_random.bit_generator.state}
 
     def set_rng_state(self, state: dict):
-        self.unwrapped.np_random.set_state(state["task"])
+        task_rng = self.unwrapped.np_random
+        if isinstance(task_rng, np.random.Generator):
+            task_rng.bit_generator.state = state["task"]
+        else:
+            task_rng.set_state(state["task"])
         self.noise_rng.bit_generator.state = state["noise"]
         self.action_space.np_random.bit_generator.state = state["action_space"]
 
     def physics_state(self) -> np.ndarray:
         """The MuJoCo state of the current step (qpos, qvel, act): what `render_states` needs to draw it again."""
-        return self.unwrapped._env.physics.get_state().copy()
+        if hasattr(self.unwrapped, "_env"):  # a dm_control task, through shimmy
+            return self.unwrapped._env.physics.get_state().copy()
+        return mujoco_state(self.unwrapped.model, self.unwrapped.data)
 
     def step_async(self, action):
         """`step_async(action)` then `step_wait()` is `step(action)`: the interface of `EnvProcess`, which steps in a
@@ -265,8 +305,11 @@ def serve_env(pipe, args: tuple):
 
 
 def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int = 320) -> np.ndarray:
-    """Frames (T, height, width, 3) uint8 of the physics `states` (T, D) of task `env_id`, from camera 0. Needs a
-    renderer: on a machine without a display set `MUJOCO_GL=egl` (or `osmesa`) before the first import of dm_control."""
+    """Frames (T, height, width, 3) uint8 of the physics `states` (T, D) of task `env_id`: from camera 0 (dm_control)
+    or the model's tracking camera, as in videos (gymnasium). Needs a renderer: on a machine without a display set
+    `MUJOCO_GL=egl` (or `osmesa`) before the first import of dm_control or mujoco."""
+    if env_id not in dmc_tasks():
+        return render_gym_states(env_id, states, height, width)
     from dm_control import suite
 
     domain, task = env_id.split("-", 1)
@@ -277,6 +320,62 @@ def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int
             physics.set_state(state)
         frames.append(physics.render(height, width, camera_id=0))
     return np.stack(frames)
+
+
+def render_gym_states(env_id: str, states: np.ndarray, height: int, width: int) -> np.ndarray:
+    """`render_states` of a gymnasium MuJoCo task, with the camera of its videos."""
+    env = make_gym_task(env_id, 1)
+    draw = MujocoFrames(env.unwrapped, height, width)
+    frames = np.stack([draw(state) for state in states])
+    draw.close()
+    env.close()
+    return frames
+
+
+def mujoco_state(model, data) -> np.ndarray:
+    """The physics state (qpos, qvel, act: MuJoCo's mjSTATE_PHYSICS) of a gymnasium MuJoCo task."""
+    import mujoco
+
+    state = np.empty(mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_PHYSICS))
+    mujoco.mj_getState(model, data, state, mujoco.mjtState.mjSTATE_PHYSICS)
+    return state
+
+
+class MujocoFrames:
+    """Frames of the physics states of a gymnasium MuJoCo task, from the model's tracking camera ("track"; in a model
+    without one, gymnasium's free camera, placed from the model's initial state).
+
+    It draws on an MjData of its own, set to the state: after a step, the task's own MjData holds the positions of the
+    last substep's start, a little behind the state. So videos and the labelling page draw a state the same way."""
+
+    def __init__(self, task, height: int, width: int):
+        import mujoco
+        from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
+
+        self.model = task.model
+        self.data = mujoco.MjData(self.model)
+        mujoco.mj_forward(self.model, self.data)  # the model's initial state, positions included
+        self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, width)  # the frame fits the buffer
+        self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
+        camera = task.mujoco_renderer.default_cam_config
+        self.renderer = MujocoRenderer(self.model, self.data, camera, width, height, camera_name="track")
+        self.renderer.render("rgb_array")  # a free camera is placed at the first frame: here, at the initial state
+
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        import mujoco
+
+        mujoco.mj_setState(self.model, self.data, np.asarray(state, np.float64), mujoco.mjtState.mjSTATE_PHYSICS)
+        mujoco.mj_forward(self.model, self.data)  # positions for drawing
+        # another renderer of the process may have made its own GL context current, or freed it and left none
+        self.renderer.viewer.make_context_current()
+        return self.renderer.render("rgb_array")
+
+    def close(self):
+        # MuJoCo's drawing context deletes its GL objects in whichever GL context is current when it is garbage
+        # collected, maybe another renderer's: it deletes them now, in its own
+        self.renderer.viewer.make_context_current()
+        self.renderer.viewer.con.free()
+        self.renderer.close()
 
 
 def replay_episode(env: NoisyObservation, seed: int, episode_start: Optional[dict], actions: list) -> np.ndarray:
@@ -299,13 +398,83 @@ def check_env_args(env_id: str, noise: float, noise_type: str = "gaussian", nois
     if noise_type not in NOISE_TYPES:
         raise ValueError(f"--noise-type must be one of {NOISE_TYPES}, got {noise_type!r}")
     tasks = dmc_tasks()
-    if env_id not in tasks:
-        raise ValueError(f"--env-id {env_id!r} is not a dm_control suite task; use domain-task, e.g. {', '.join(tasks[:6])}")
+    if env_id not in tasks and gym_mujoco_class(env_id) is None:
+        raise ValueError(
+            f"--env-id {env_id!r} is neither a dm_control suite task (domain-task, e.g. {', '.join(tasks[:6])}) nor a "
+            f"gymnasium MuJoCo task (e.g. {', '.join(GYM_EXAMPLES)})"
+        )
     if noise_type == "imitate":
         if noise_histograms is None:
             raise ValueError("--noise-histograms is required with --noise-type imitate")
         return load_histograms(noise_histograms)
     return None
+
+
+def make_dmc_task(env_id: str, episode_length: int, render_mode: Optional[str]) -> gym.Env:
+    """A dm_control task through shimmy, its observation flattened, its episodes `episode_length` steps long."""
+    import shimmy
+
+    # importing shimmy imports dm_control's composer, which sets every DeprecationWarning to 'always'; with NumPy >= 2.5
+    # dm_control's own array code then prints one at every env step. They are dm_control's to fix, not the user's.
+    warnings.filterwarnings("ignore", category=DeprecationWarning, module="dm_control")
+    gym.register_envs(shimmy)
+    env = gym.make(
+        f"dm_control/{env_id}-v0",
+        max_episode_steps=episode_length,
+        render_mode=render_mode,
+        # dm_control's own limit is 1000 steps of 0.01 s to 0.025 s; lift it so `episode_length` decides
+        task_kwargs={"time_limit": float("inf")},
+    )
+    return gym.wrappers.FlattenObservation(env)
+
+
+class FixedHorizon(gym.Wrapper):
+    """Never terminated: a task that has no `terminate_when_unhealthy` (the inverted pendulums) runs on past the state
+    that would end its episode, so that every episode lasts `episode_length` steps."""
+
+    def step(self, action):
+        obs, reward, _, truncated, info = self.env.step(action)
+        return obs, reward, False, truncated, info
+
+
+class StateVideo(gym.Wrapper):
+    """`render()` draws the current physics state with `MujocoFrames`: the frames `RecordVideo` films, at the size of
+    dm_control's videos and of the labelling page's clips."""
+
+    def __init__(self, env: gym.Env, height: int = 240, width: int = 320):
+        super().__init__(env)
+        self.draw = MujocoFrames(env.unwrapped, height, width)
+
+    @property
+    def render_mode(self):
+        return "rgb_array"
+
+    def render(self):
+        return self.draw(mujoco_state(self.unwrapped.model, self.unwrapped.data))
+
+    def close(self):
+        self.draw.close()
+        super().close()
+
+
+def make_gym_task(env_id: str, episode_length: int, render_mode: Optional[str] = None) -> gym.Env:
+    """A gymnasium MuJoCo task with a flat Box observation, its episodes `episode_length` steps long, never
+    terminated; with `render_mode="rgb_array"`, `render()` draws its state as `render_states` does."""
+    kwargs = {}
+    if "terminate_when_unhealthy" in inspect.signature(gym_mujoco_class(env_id)).parameters:
+        kwargs["terminate_when_unhealthy"] = False  # a fall is a state to learn from, not the end of the episode
+    # gymnasium's own limit (1000 steps for most tasks) is replaced, so that `episode_length` decides
+    try:
+        env = gym.make(env_id, max_episode_steps=episode_length, **kwargs)
+    except (ImportError, gym.error.Error) as e:  # a task this install cannot run: Pusher-v4 needs mujoco < 3
+        reason = str(e).splitlines()[0]
+        raise ValueError(f"--env-id {env_id}: gymnasium cannot make this task here ({reason})") from None
+    space = env.observation_space
+    if not (isinstance(space, gym.spaces.Box) and len(space.shape) == 1):
+        env.close()
+        raise ValueError(f"--env-id {env_id}: the noise is appended to a flat Box observation, and this task's is {space}")
+    env = FixedHorizon(env)
+    return StateVideo(env) if render_mode else env
 
 
 def make_env(
@@ -317,8 +486,9 @@ def make_env(
     episode_length: int = 1000,
     video_folder: Optional[str] = None,
 ) -> NoisyObservation:
-    """A dm_control task (`cheetah-run`) as a gymnasium env with flat float32 observations, actions in [-1, 1],
-    `episode_length`-step episodes (truncated, never terminated) and the ENE noise appended.
+    """A dm_control task (`cheetah-run`) or a gymnasium MuJoCo task (`HalfCheetah-v5`) as a gymnasium env with flat
+    float32 observations, actions in [-1, 1], `episode_length`-step episodes (truncated, never terminated) and the
+    ENE noise appended.
 
     `seed` seeds the task on the first `reset()` (call `env.reset(seed=seed)`), the action space and the noise
     generator. Give the evaluation env a different seed for a different stream.
@@ -326,21 +496,13 @@ def make_env(
     histograms = check_env_args(env_id, noise, noise_type, noise_histograms)
     if episode_length < 1:
         raise ValueError(f"--episode-length must be >= 1, got {episode_length}")
-    import shimmy
-
-    # importing shimmy imports dm_control's composer, which sets every DeprecationWarning to 'always'; with NumPy >= 2.5
-    # dm_control's own array code then prints one at every env step. They are dm_control's to fix, not the user's.
-    warnings.filterwarnings("ignore", category=DeprecationWarning, module="dm_control")
-    gym.register_envs(shimmy)
-    env = gym.make(
-        f"dm_control/{env_id}-v0",
-        max_episode_steps=episode_length,
-        render_mode="rgb_array" if video_folder else None,
-        # dm_control's own limit is 1000 steps of 0.01 s to 0.025 s; lift it so `episode_length` decides
-        task_kwargs={"time_limit": float("inf")},
-    )
-    env = gym.wrappers.FlattenObservation(env)
-    env = gym.wrappers.RescaleAction(env, -1.0, 1.0)  # quadruped's bounds are not +-1
+    render_mode = "rgb_array" if video_folder else None
+    if env_id in dmc_tasks():
+        env = make_dmc_task(env_id, episode_length, render_mode)
+    else:
+        env = make_gym_task(env_id, episode_length, render_mode)
+    bound = env.action_space.dtype.type(1.0)  # in the space's own dtype: gymnasium's is float32, dm_control's float64
+    env = gym.wrappers.RescaleAction(env, -bound, bound)  # quadruped's and Humanoid's bounds are not +-1
     if video_folder:
         env = gym.wrappers.RecordVideo(env, video_folder, disable_logger=True)
     env.action_space.seed(seed)

@@ -42,7 +42,7 @@ class Args:
     seed: int = 1
     """seed of the rollout env (the policy is deterministic)"""
     env_id: Optional[str] = None
-    """the dm_control task; computed at runtime when left unset: the checkpoint's `--env-id`"""
+    """the task (dm_control or gymnasium MuJoCo); computed at runtime when left unset: the checkpoint's `--env-id`"""
 
 
 def load_actor(path: str) -> tuple:

@@ -75,7 +75,7 @@ class Args:
 
     # Environment arguments
     env_id: str = "cheetah-run"
-    """the dm_control task, as domain-task"""
+    """the task: a dm_control one as domain-task (cheetah-run), or a gymnasium MuJoCo one (HalfCheetah-v5, Hopper-v5, ...)"""
     noise: float = 0.9
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"

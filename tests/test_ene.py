@@ -6,6 +6,9 @@ import subprocess
 import sys
 import warnings
 
+import gymnasium
+import gymnasium.envs.mujoco.hopper_v5
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -516,3 +519,196 @@ def test_a_script_with_env_processes_exits_when_it_stops(tmp_path):
     broken = ene.EnvProcess("cartpole-swingup", 3, 0.5, "gaussian", None, 0)  # episode length 0: make_env refuses
     with pytest.raises(RuntimeError, match="the env's process: ValueError: --episode-length must be >= 1"):
         broken.reset(seed=3)
+
+
+# ---------------------------------------------------------------- 9. gymnasium's MuJoCo tasks (issue 33)
+
+GYM_DIMS = {  # real features, then all features at noise 0.7 and 0.9 (ANF's and the R2N paper's fractions)
+    "HalfCheetah-v5": (17, 57, 171), "Hopper-v5": (11, 37, 111), "Walker2d-v5": (17, 57, 171),
+    "Ant-v5": (105, 350, 1051), "Humanoid-v5": (348, 1160, 3481),
+}
+
+
+@pytest.mark.parametrize("env_id", list(GYM_DIMS))
+def test_gym_task_dimensions(env_id):
+    real, at_07, at_09 = GYM_DIMS[env_id]
+    for noise, total in ((0.0, real), (0.7, at_07), (0.9, at_09)):
+        env = ene.make_env(env_id, seed=0, noise=noise, episode_length=EPISODE)
+        assert (env.obs_dim_real, env.n_noise, env.observation_space.shape) == (real, total - real, (total,))
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (total,) and obs.dtype == np.float32
+        assert np.all(env.action_space.low == -1.0) and np.all(env.action_space.high == 1.0)
+        env.close()
+
+
+def test_gym_task_real_columns_are_gymnasiums_and_noise_is_fresh_standard_normal():
+    """The real columns are gymnasium's own observation (float32), whatever the noise; the noise columns are N(0, 1)
+    and fresh at every step."""
+    n = 200
+    noisy = ene.make_env("HalfCheetah-v5", seed=3, noise=0.9, episode_length=n)
+    obs_noisy, actions = _rollout(noisy, 3, n)
+    plain = gymnasium.make("HalfCheetah-v5")  # its bounds are +-1: the actions need no rescaling
+    obs_plain = [plain.reset(seed=3)[0]] + [plain.step(a)[0] for a in actions]
+    np.testing.assert_array_equal(obs_noisy[:, :17], np.float32(obs_plain))
+    assert not np.allclose(obs_noisy[0, :17], obs_noisy[-1, :17])
+    noise = obs_noisy[:, 17:]
+    for t in range(n):
+        assert np.mean(noise[t] != noise[t + 1]) > 0.99
+    assert abs(noise.mean()) < 0.02 and abs(noise.std() - 1.0) < 0.02  # 201 x 154 draws: standard errors ~0.005
+    assert abs(np.mean(np.abs(noise) < 1.0) - 0.6827) < 0.01
+    noisy.close()
+    plain.close()
+
+
+def test_gym_task_imitated_noise(tmp_path):
+    env = ene.make_env("Hopper-v5", seed=0, noise=0.0, episode_length=EPISODE)
+    obs, _ = _rollout(env, 0, EPISODE)
+    env.close()
+    path = str(tmp_path / "hopper.npz")
+    ene.build_histograms(obs, path)
+    env = ene.make_env("Hopper-v5", seed=0, noise=0.9, noise_type="imitate", noise_histograms=path, episode_length=EPISODE)
+    noisy, _ = _rollout(env, 0, EPISODE)
+    lo, hi = obs.min(0), obs.max(0)
+    for i in range(env.n_noise):
+        source = i % 11
+        assert np.all(noisy[:, 11 + i] >= lo[source] - 1e-5) and np.all(noisy[:, 11 + i] <= hi[source] + 1e-5)
+    assert np.mean(noisy[1:, 11:] != noisy[:-1, 11:]) > 0.99
+    env.close()
+
+
+@pytest.mark.parametrize("env_id", ["Hopper-v5", "InvertedPendulum-v5"])
+def test_gym_episodes_have_episode_length_steps_and_never_terminate(env_id):
+    """Hopper falls under random actions (gymnasium would end the episode there) and its episode goes on, past
+    gymnasium's own limit of 1000 steps too; InvertedPendulum has no terminate_when_unhealthy and goes on as well."""
+    for length in (30, 1100):
+        env = ene.make_env(env_id, seed=0, noise=0.5, episode_length=length)
+        task = env.unwrapped
+        fell = False
+        for _ in range(2):  # two episodes in a row
+            env.reset(seed=0)
+            for t in range(1, length + 1):
+                _, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+                fell = fell or not (task.is_healthy if env_id == "Hopper-v5" else abs(task.data.qpos[1]) <= 0.2)
+                assert np.isfinite(reward) and not terminated, t
+                assert bool(truncated) == (t == length), t
+        assert fell or length == 30, "the body never fell: the test would not see a termination"
+        env.close()
+    if env_id == "Hopper-v5":  # gymnasium's own switch is off: its healthy reward is paid only while healthy
+        assert ene.make_env(env_id, 0).unwrapped.spec.kwargs["terminate_when_unhealthy"] is False
+
+
+def test_gym_physics_state_is_the_observed_state():
+    """`physics_state()` before a step (what the scripts store with a query) is the state of the current observation:
+    set on a fresh task, it gives the same real features."""
+    env = ene.make_env("Hopper-v5", seed=5, noise=0.9, episode_length=EPISODE)
+    obs, _ = env.reset(seed=5)
+    fresh = ene.make_gym_task("Hopper-v5", EPISODE).unwrapped
+    for _ in range(EPISODE):
+        state = env.physics_state()
+        assert state.shape == (fresh.model.nq + fresh.model.nv + fresh.model.na,)
+        mujoco.mj_setState(fresh.model, fresh.data, state, mujoco.mjtState.mjSTATE_PHYSICS)
+        mujoco.mj_forward(fresh.model, fresh.data)
+        np.testing.assert_array_equal(np.float32(fresh._get_obs()), obs[:11])
+        obs = env.step(env.action_space.sample())[0]
+    env.close()
+
+
+def test_gym_frames_drawn_again_from_stored_states_are_the_videos(tmp_path, monkeypatch):
+    """The frames a video of the run films (RecordVideo's) and those `render_states` draws from the physics states
+    stored during the run (at the labelling page's size, the videos' too) are the same, bit for bit."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")  # no display here: Mesa's EGL
+    env = ene.make_env("Hopper-v5", seed=1, noise=0.9, episode_length=50, video_folder=str(tmp_path / "videos"))
+    env.reset(seed=1)
+    states = []
+    for _ in range(8):
+        states.append(env.physics_state())
+        for _ in range(3):  # frames 3 steps apart: they differ clearly
+            env.step(env.action_space.sample())
+    filmed = np.stack(env.get_wrapper_attr("recorded_frames")[::3][:8])  # one at the reset, one after each step
+    drawn = ene.render_states("Hopper-v5", np.stack(states))
+    assert drawn.shape == filmed.shape == (8, 240, 320, 3) and drawn.dtype == np.uint8
+    assert np.array_equal(drawn, filmed)
+    assert np.abs(drawn[0].astype(int) - drawn[-1]).mean() > 1.0  # the frames show the motion (a check that can fail)
+    # drawn after other states, a state gives the same frame: nothing carries over from one frame to the next
+    assert np.array_equal(ene.render_states("Hopper-v5", np.stack(states[::-1]))[::-1], drawn)
+    env.close()
+
+
+def test_gym_replay_episode_and_generators():
+    """Exact resume's env part on a gymnasium task: gymnasium's generator (reset noise) is in `rng_state`, and a fresh
+    env replays a saved episode to the same observation, then goes on identically."""
+    env = ene.make_env("Hopper-v5", 3, 0.9, episode_length=20)
+    env.reset(seed=3)
+    for _ in range(20):
+        env.step(env.action_space.sample())
+    episode_start, actions = env.rng_state(), []
+    assert episode_start["task"]["bit_generator"] == "PCG64"  # gymnasium's own generator
+    obs, _ = env.reset()
+    for _ in range(7):
+        actions.append(env.action_space.sample())
+        obs = env.step(actions[-1])[0]
+    now = env.rng_state()
+    fresh = ene.make_env("Hopper-v5", 3, 0.9, episode_length=20)
+    assert np.array_equal(ene.replay_episode(fresh, 3, episode_start, actions), obs)
+    fresh.set_rng_state(now)
+    for _ in range(40):  # the rest of the episode and the next one: the same reset noise, noise and actions
+        action, fresh_action = env.action_space.sample(), fresh.action_space.sample()
+        assert np.array_equal(action, fresh_action)
+        step, fresh_step = env.step(action), fresh.step(fresh_action)
+        assert np.array_equal(step[0], fresh_step[0]) and step[1:4] == fresh_step[1:4]
+        if step[3]:
+            assert np.array_equal(env.reset()[0], fresh.reset()[0])
+    # a check that can fail: the same generators but gymnasium's, taken from another seed, give another start
+    other = ene.make_env("Hopper-v5", 4, 0.9, episode_length=20)
+    other.reset(seed=4)
+    mixed = dict(episode_start, task=other.rng_state()["task"])
+    replayed = ene.replay_episode(ene.make_env("Hopper-v5", 3, 0.9, episode_length=20), 3, mixed, actions)
+    assert not np.array_equal(replayed[:11], obs[:11]) and np.array_equal(replayed[11:], obs[11:])
+
+
+@pytest.mark.filterwarnings("ignore:.*is out of date:DeprecationWarning")  # gymnasium's advice to use v5, for v4
+def test_every_gymnasium_mujoco_task_runs_with_the_noise():
+    """Any registered MuJoCo task of gymnasium: flat float32 observations with the noise, fixed-length episodes; one
+    this install cannot run (Pusher-v4 needs mujoco < 3) is refused with one line."""
+    tasks = ene.gym_mujoco_tasks()
+    assert set(GYM_DIMS) <= set(tasks) and "cheetah-run" not in tasks and "CartPole-v1" not in tasks
+    for env_id in tasks:
+        if env_id == "Pusher-v4":
+            _assert_one_line_value_error(lambda: ene.make_env(env_id, 0, 0.5), "--env-id Pusher-v4")
+            continue
+        env = ene.make_env(env_id, seed=0, noise=0.5, episode_length=5)
+        obs, _ = env.reset(seed=0)
+        for t in range(5):
+            obs, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            assert not terminated and bool(truncated) == (t == 4), env_id
+        assert obs.dtype == np.float32 and obs.shape == (2 * env.obs_dim_real,), env_id
+        env.close()
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "Hopper-v3", "hopper-v5", "HalfCheetah", "cheetah-run-v0"])
+def test_unknown_id_lists_both_families(env_id):
+    for make in (lambda: ene.check_env_args(env_id, 0.9), lambda: ene.make_env(env_id, 0, noise=0.9)):
+        message = _assert_one_line_value_error(make, "--env-id")
+        assert "dm_control" in message and "domain-task" in message, message
+        assert "gymnasium MuJoCo" in message and "HalfCheetah-v5" in message, message
+
+
+class DictObservationHopper(gymnasium.envs.mujoco.hopper_v5.HopperEnv):
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.observation_space = gymnasium.spaces.Dict({"state": self.observation_space})
+
+
+class ImageObservationHopper(gymnasium.envs.mujoco.hopper_v5.HopperEnv):
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.observation_space = gymnasium.spaces.Box(0, 255, (64, 64, 3), np.uint8)
+
+
+@pytest.mark.parametrize("task_class", [DictObservationHopper, ImageObservationHopper])
+def test_observation_that_is_not_a_flat_box_is_refused(task_class, monkeypatch):
+    env_id = f"test/{task_class.__name__}-v0"
+    monkeypatch.setitem(gymnasium.registry, env_id, gymnasium.envs.registration.EnvSpec(env_id, task_class))
+    assert ene.check_env_args(env_id, 0.9) is None  # a MuJoCo task: its observation shows once it is made
+    message = _assert_one_line_value_error(lambda: ene.make_env(env_id, 0, noise=0.9), f"--env-id {env_id}")
+    assert "flat Box" in message, message

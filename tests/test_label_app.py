@@ -113,6 +113,46 @@ def test_label_app_writes_a_round_once(tmp_path):
     assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
 
 
+def test_label_app_draws_a_gymnasium_segment_again_as_the_run_drew_it(tmp_path, monkeypatch):
+    """A queried segment of a gymnasium task (Hopper-v5, with the noise), stored as a run stores it (the physics state
+    of each step), comes back from the page as the frames drawn during the run: equal up to the GIF's palette, and
+    each frame nearer its own step than any other step of the segment."""
+    import imageio.v3 as iio
+
+    sys.path.insert(0, ROOT)
+    import ene
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")  # the run's drawing, here; the app sets it for itself
+    env = ene.make_env("Hopper-v5", seed=0, noise=0.9, episode_length=100)
+    obs, _ = env.reset(seed=0)
+    draw = ene.MujocoFrames(env.unwrapped, 240, 320)  # the page's size
+    rows, states, drawn = [], [], []
+    for t in range(48):
+        action = env.action_space.sample()
+        if t % 4 == 0:  # every 4th step: frames that differ clearly
+            rows.append((obs, action))
+            states.append(env.physics_state())
+            drawn.append(draw(states[-1]))
+        obs = env.step(action)[0]
+    draw.close()
+    env.close()
+    shape = (1, 2, 6)  # one query of two 6-step segments: the first and the second half of the steps
+    run = tmp_path / "runs" / "ext"
+    (run / "queries").mkdir(parents=True)
+    np.savez(run / "queries" / "0.npz", env_id="Hopper-v5", obs=np.stack([o for o, _ in rows]).reshape(*shape, 111),
+             actions=np.stack([a for _, a in rows]).reshape(*shape, 3), physics=np.stack(states).reshape(*shape, 12),
+             true_rewards=np.zeros(shape))
+    with serve(run) as address:
+        clips = [request(address, "GET", f"/clip/0/0/{side}.gif") for side in (0, 1)]
+    assert [status for status, _ in clips] == [200, 200]
+    frames = np.concatenate([iio.imread(body, index=None, extension=".gif")[..., :3] for _, body in clips])
+    drawn = np.stack(drawn)
+    assert frames.shape == drawn.shape == (12, 240, 320, 3)
+    errors = np.abs(frames[:, None].astype(int) - drawn[None].astype(int)).mean((2, 3, 4))  # (page frame, run frame)
+    assert np.all(np.diag(errors) < 1.0), np.diag(errors)
+    assert np.array_equal(errors.argmin(1), np.arange(12)), errors.argmin(1)
+
+
 def test_label_app_takes_exactly_the_labels_the_run_takes():
     """The page's check of a labels file, on the table the run's check is tested on (tests/label_examples.py)."""
     sys.path.insert(0, ROOT)

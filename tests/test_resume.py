@@ -72,8 +72,8 @@ def tensors(checkpoint, prefix=""):
             yield from tensors(value, f"{prefix}/{key}")
 
 
-def assert_same_run(script, reference, resumed):
-    """The same points (SPS: the same steps) and bitwise the same checkpoint tensors."""
+def assert_same_run(script, reference, resumed, eval_steps=(400, 800, 900)):
+    """The same points (SPS: the same steps), evaluations at `eval_steps`, bitwise the same checkpoint tensors."""
     expected, actual = points(reference), points(resumed)
     assert sorted(expected) == sorted(actual)
     for tag in expected:
@@ -81,7 +81,7 @@ def assert_same_run(script, reference, resumed):
             assert [s for s, _ in actual[tag]] == [s for s, _ in expected[tag]]
         else:
             assert actual[tag] == expected[tag], f"{script}: {tag} differs"
-    assert [s for s, _ in actual["eval/episodic_return"]] == [400, 800, 900]
+    assert [s for s, _ in actual["eval/episodic_return"]] == list(eval_steps)
     name = script[:-3]
     expected = dict(tensors(torch.load(f"{reference}/{name}.cleanrl_model", weights_only=False)))
     actual = dict(tensors(torch.load(f"{resumed}/{name}.cleanrl_model", weights_only=False)))
