@@ -872,7 +872,7 @@ def open_run(args) -> tuple:
         state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
-    if "loop" in state:  # the layout before issue 18 saved the loop's variables as tuples, not as `Loop`
+    if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
         raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
                          "it with that version (git checkout 88b95d9)")
     saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
