@@ -214,7 +214,12 @@ def find_event_files(log_dirs) -> list:
     for root in log_dirs:
         for path in glob.glob(os.path.join(glob.escape(root), "**", "events.out.tfevents.*"), recursive=True):
             found.add(shown(os.path.abspath(path)))
-    return sorted(found)
+    return sorted(found, key=lambda path: (natural_order(os.path.dirname(path)), natural_order(os.path.basename(path))))
+
+
+def natural_order(name: str) -> list:
+    """Numbers compared as numbers: a writer's 100th file (`...tfevents.T.host.PID.100`) comes after its 99th."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
 
 
 def read_run(path: str, whole_folder: bool = False) -> Run:

@@ -1117,6 +1117,19 @@ def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_
 
 
 @needs_analysis
+def test_event_files_of_a_folder_are_read_in_the_order_written(tmp_path):
+    """A writer numbers its files; the 100th sorts after the 99th, so a resumed run's first file (the one with the
+    hyperparameter table) is read first, whatever the counter's digits."""
+    names = ["events.out.tfevents.1795669934.vm.21712.100", "events.out.tfevents.1795669934.vm.21712.99"]
+    for folder in ("run9", "run10"):
+        for name in names:
+            (tmp_path / folder).mkdir(exist_ok=True)
+            (tmp_path / folder / name).write_bytes(b"")
+    found = [os.path.relpath(path, tmp_path) for path in analyze.find_event_files([str(tmp_path)])]
+    assert found == [os.path.join(folder, name) for folder in ("run9", "run10") for name in reversed(names)]
+
+
+@needs_analysis
 def test_analyze_reports_relevant_weight_frac_where_runs_log_it(tmp_path):
     """`features.md` holds each group's final `relevant_weight_frac` per network (mean ± SE over seeds, chance, their
     ratio), and a plot per setting shows it; runs without the tags (older studies) get neither."""
