@@ -11,7 +11,8 @@ part=$1
 out=$2
 archive=${3:-}
 root=$(cd "$(dirname "$0")/../.." && pwd)
-base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --log-freq 1000)
+# one torch thread per run: several runs at once would otherwise each start a thread per core and fight over them
+base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --log-freq 1000 --threads 1)
 
 config() {  # name, runs at once, total steps, flags...
   local name=$1 n=$2 steps=$3
@@ -47,11 +48,13 @@ case $part in
     ;;
   mps)  # the same under CUDA MPS (one GPU context for all runs), then 8 runs at 256 wide
     nvidia-cuda-mps-control -d || { echo "MPS did not start"; exit 1; }
+    # the daemon outlives this script: quit it however the script ends (a timeout, an error, the end)
+    trap 'echo quit | nvidia-cuda-mps-control' EXIT
+    trap 'exit 130' INT TERM
     for n in 4 8; do
       config "x$n-graph-tf32-mps" "$n" 8000 --eval-freq 2000 --cuda-graph --tf32
     done
     config x8-256wide-graph-tf32-mps 8 8000 --eval-freq 2000 --cuda-graph --tf32 --hidden-dim 256 --batch-size 256
-    echo quit | nvidia-cuda-mps-control
     ;;
   profile)  # where a captured step's host time goes: cProfile of 2000 learned-reward steps, the top 40 by own time
     mkdir -p "$out/profile"

@@ -1,0 +1,388 @@
+"""The helper of `measure.sh` (issue 32): one instrumented run, and the tables read from the runs' event files and logs.
+
+- `items`: runs a training script in this process with a timer around each step item (acting, the env step, the
+  reward prediction, buffer writes, sampling, the three SAC steps, the optimiser steps). Host microseconds come from
+  `time.perf_counter`; GPU microseconds from CUDA events on the run's stream, that is the stream time between an
+  item's start and end marks (a GPU waiting for the host counts in it). Only steps of the window count, and none
+  holding an evaluation, a feedback round or a state write.
+- `rates`: the steady-state steps/s of the runs of one configuration (runs that ran at once), each over the same step
+  window, from the wall times of its `losses/qf_loss` points; their sum, and the rate over the wall-clock span in
+  which every run was inside the window.
+- `window`: one run's steps/s over a step window, and the evaluations' and state writes' shares of its seconds.
+- `exact`: the pass/fail table of a JUnit XML report (the eager-against-captured tests).
+"""
+import argparse
+import csv
+import functools
+import glob
+import json
+import os
+import re
+import statistics
+import sys
+import time
+import types
+import xml.etree.ElementTree as ET
+
+TAG = "losses/qf_loss"  # logged every --log-freq steps after a host sync: the wall time of a step's end
+
+
+# Reading event files and logs
+def points(run_dir: str, tag: str = TAG) -> list:
+    """(step, wall time) of every point of `tag` in a run folder, in step order."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(run_dir, size_guidance={"scalars": 0})
+    events.Reload()
+    if tag not in events.Tags()["scalars"]:
+        return []
+    return sorted((e.step, e.wall_time) for e in events.Scalars(tag))
+
+
+def wall_at(pts: list, step: int) -> float:
+    """The wall time of the point at `step`; KeyError if the run logged none there."""
+    for s, t in pts:
+        if s == step:
+            return t
+    raise KeyError(step)
+
+
+def steps_at(pts: list, wall: float) -> float:
+    """The step reached at wall time `wall`, linear between the points around it."""
+    for (s0, t0), (s1, t1) in zip(pts, pts[1:]):
+        if t0 <= wall <= t1:
+            return s0 + (s1 - s0) * (wall - t0) / (t1 - t0) if t1 > t0 else s1
+    raise ValueError(f"wall time {wall} outside the points")
+
+
+def window_rates(runs: dict, first: int, last: int) -> dict:
+    """Steady-state rates of runs that ran at once, each from step `first` to `last`. `runs`: name -> points.
+    Returns each run's rate, their sum, and the rate of all runs together over the span where each was in the
+    window (None when the windows do not overlap: the sum then overstates what ran at once)."""
+    reached = [max(s for s, _ in pts) for pts in runs.values() if pts]
+    if reached and first < min(reached) < last:  # a run cut off inside the window: the window all runs finished
+        last = min(reached)  # the runs log at the same steps: each has a point there
+    per_run, spans = {}, {}
+    for name, pts in runs.items():
+        try:
+            spans[name] = wall_at(pts, first), wall_at(pts, last)
+        except KeyError:
+            continue  # cut off before the window's end, or never started
+        per_run[name] = (last - first) / (spans[name][1] - spans[name][0])
+    result = dict(last=last, per_run=per_run, runs_in_window=len(per_run), runs=len(runs), sum=sum(per_run.values()),
+                  overlap_seconds=0.0, overlap_rate=None)
+    if per_run:
+        start, end = max(a for a, _ in spans.values()), min(b for _, b in spans.values())
+        if end > start:
+            steps = sum(steps_at(runs[n], end) - steps_at(runs[n], start) for n in per_run)
+            result.update(overlap_seconds=end - start, overlap_rate=steps / (end - start))
+    return result
+
+
+def log_seconds(text: str, first: int, last: int) -> tuple:
+    """Evaluation seconds and state-write seconds that a run's log reports after step `first` up to `last`."""
+    evals = [float(s) for step, s in re.findall(r"step=(\d+) eval_return=\S+ SPS=\d+ eval_seconds=(\S+)", text)
+             if first < int(step) <= last]
+    states = [float(s) for step, s in re.findall(r"state saved after step (\d+): \S+ GB in (\S+) s", text)
+              if first < int(step) <= last]
+    return evals, states
+
+
+def window_shares(pts: list, log_text: str, first: int, last: int, feedback_steps: list) -> dict:
+    """Steps/s of one run from `first` to `last`, and what its evaluations, state writes and feedback rounds took
+    of those seconds. A round's seconds are not logged: they are estimated as the excess of the log interval that
+    holds it over the median interval."""
+    seconds = wall_at(pts, last) - wall_at(pts, first)
+    evals, states = log_seconds(log_text, first, last)
+    inside = [(s, t) for s, t in pts if first <= s <= last]
+    gaps = [(s0, s1, t1 - t0) for (s0, t0), (s1, t1) in zip(inside, inside[1:])]
+    typical = statistics.median(dt for _, _, dt in gaps)
+    rounds = sum(max(0.0, dt - typical) for s0, s1, dt in gaps if any(s0 < f <= s1 for f in feedback_steps))
+    return dict(first=first, last=last, seconds=seconds, steps_per_s=(last - first) / seconds,
+                evaluations=len(evals), eval_seconds=sum(evals), eval_share=sum(evals) / seconds,
+                state_writes=len(states), state_seconds=sum(states), state_share=sum(states) / seconds,
+                feedback_rounds_seconds_estimate=rounds, feedback_share_estimate=rounds / seconds,
+                steps_per_s_without_evals_states=(last - first) / (seconds - sum(evals) - sum(states)))
+
+
+def junit_table(path: str) -> list:
+    """(test, outcome, message) of each test case of a JUnit XML report."""
+    rows = []
+    for case in ET.parse(path).getroot().iter("testcase"):
+        name = case.get("name")
+        outcome, message = "passed", ""
+        for kind in ("failure", "error", "skipped"):
+            found = case.find(kind)
+            if found is not None:
+                outcome, message = kind, (found.get("message") or "").split("\n")[0][:200]
+                break
+        rows.append((name, outcome, message))
+    return rows
+
+
+# The instrumented run
+class Timers:
+    """Host and GPU times of the step items, for the steps from `first` to `last` (exclusive)."""
+
+    def __init__(self, first: int, last: int, cuda: bool):
+        self.first, self.last, self.cuda = first, last, cuda
+        self.step, self.step_start, self.busy = None, None, False  # busy: the step held an eval, round or state
+        self.leaf, self.blocked = 0, 0  # depth inside an item (no double counts) and inside an excluded part
+        self.calls, self.step_seconds, self.skipped_steps = [], [], 0
+        self.current = []  # this step's calls, kept only if the step turns out plain
+        self.excluded = {}  # seconds of the excluded parts (evaluations, rounds, state writes), each call
+        self.on_window_end = None
+
+    def in_window(self) -> bool:
+        return self.step is not None and self.first <= self.step < self.last
+
+    def new_step(self, step: int):
+        now = time.perf_counter()
+        if self.in_window():
+            if self.busy:
+                self.skipped_steps += 1
+            else:
+                self.step_seconds.append(now - self.step_start)
+                self.calls.extend(self.current)
+        self.step, self.step_start, self.busy, self.current = step, now, False, []
+        if step >= self.last and self.on_window_end is not None:  # written now: the run may be cut off later
+            self.on_window_end(self)
+            self.on_window_end = None
+
+    def item(self, name, fn, leaf: bool = True):
+        """`fn` timed as item `name` (a callable that takes the item's name from its first argument when `name`
+        is callable). Items inside another leaf item, or inside an excluded part, are not counted."""
+        import torch
+
+        timers = self
+
+        def timed(*args, **kwargs):
+            label = name(*args) if callable(name) else name
+            if timers.blocked or (leaf and timers.leaf) or not timers.in_window():
+                return fn(*args, **kwargs)
+            marks = None
+            if timers.cuda:
+                marks = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+                marks[0].record()
+            timers.leaf += leaf
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                host = time.perf_counter() - start
+                timers.leaf -= leaf
+                if marks:
+                    marks[1].record()
+                timers.current.append((label, host, marks))
+        return functools.wraps(fn)(timed)
+
+    def excluding(self, name, fn):
+        """`fn` as a part excluded from the items (an evaluation, a feedback round, a state write): its seconds are
+        kept, and its step is left out of the step times."""
+        timers = self
+
+        def timed(*args, **kwargs):
+            timers.blocked += 1
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                timers.blocked -= 1
+                timers.excluded.setdefault(name, []).append(time.perf_counter() - start)
+                timers.busy = True
+        return timed
+
+    def table(self) -> list:
+        import torch
+
+        if self.cuda:
+            torch.cuda.synchronize()
+        steps = len(self.step_seconds)
+        step_us = 1e6 * statistics.fmean(self.step_seconds) if steps else float("nan")
+        names = sorted({c[0] for c in self.calls}, key=lambda n: min(i for i, c in enumerate(self.calls) if c[0] == n))
+        rows = []
+        for name in names:
+            host = [1e6 * c[1] for c in self.calls if c[0] == name]
+            gpu = [c[2][0].elapsed_time(c[2][1]) * 1e3 for c in self.calls if c[0] == name and c[2]]
+            per_step = sum(host) / steps if steps else float("nan")
+            rows.append(dict(item=name, calls=len(host), calls_per_step=len(host) / steps if steps else float("nan"),
+                             host_us_mean=statistics.fmean(host), host_us_median=statistics.median(host),
+                             gpu_us_mean=statistics.fmean(gpu) if gpu else float("nan"),
+                             gpu_us_median=statistics.median(gpu) if gpu else float("nan"),
+                             host_us_per_step=per_step, share_of_step=per_step / step_us))
+        leaves = sum(r["host_us_per_step"] for r in rows if r["item"] != "sac_update (all)")
+        rows.append(dict(item="other (loop body)", calls=steps, calls_per_step=1.0, host_us_mean=step_us - leaves,
+                         host_us_median=float("nan"), gpu_us_mean=float("nan"), gpu_us_median=float("nan"),
+                         host_us_per_step=step_us - leaves, share_of_step=(step_us - leaves) / step_us))
+        rows.append(dict(item="step (whole)", calls=steps, calls_per_step=1.0, host_us_mean=step_us,
+                         host_us_median=1e6 * statistics.median(self.step_seconds) if steps else float("nan"),
+                         gpu_us_mean=float("nan"), gpu_us_median=float("nan"), host_us_per_step=step_us,
+                         share_of_step=1.0))
+        return rows
+
+
+def instrument(namespace: dict, timers: Timers):
+    """Wrap the step items of a script's definitions (`namespace`) and of the modules it uses, before its main
+    block runs. The main block then calls the wrapped versions by their names."""
+    import torch
+
+    import ene
+
+    g = namespace
+    update = g["Progress"].update
+
+    def step_start(self, step, *args, **kwargs):  # the loop calls it first in every step
+        timers.new_step(step)
+        return update(self, step, *args, **kwargs)
+    g["Progress"].update = step_start
+    g["Actor"].get_action = timers.item("act", g["Actor"].get_action)
+    g["RewardEnsemble"].mean_reward = timers.item("reward_prediction", g["RewardEnsemble"].mean_reward)
+    g["ReplayBuffer"].add = timers.item("buffer_write", g["ReplayBuffer"].add)
+    g["ReplayBuffer"].sample = timers.item("sample", g["ReplayBuffer"].sample)
+    if "EpisodeStore" in g:
+        g["EpisodeStore"].add = timers.item("episode_write", g["EpisodeStore"].add)
+    for name in ("critic_gradients", "actor_gradients", "target_update"):
+        g[name] = timers.item(name, g[name])
+    if "CudaGraph" in g:  # captured: the replay is the item (the step inside it is not timed: it is being captured)
+        label = lambda self, *inputs: self.step.__name__ + " (replay)"  # noqa: E731
+        g["CudaGraph"].__call__ = timers.item(label, g["CudaGraph"].__call__)
+    g["sac_update"] = timers.item("sac_update (all)", g["sac_update"], leaf=False)
+
+    def optimiser_name(self, *a):
+        return "optimizer_step/" + ("critic" if "qf1" in self.layers else next(iter(self.layers)))
+    g["SparseOptimizer"].step = timers.item(optimiser_name, g["SparseOptimizer"].step)
+    torch.optim.Adam.step = timers.item("optimizer_step/adam (alpha)", torch.optim.Adam.step)
+    for name in ("evaluate", "feedback_round", "save_state"):
+        if name in g:
+            g[name] = timers.excluding(name, g[name])
+    make_env = ene.make_env
+
+    def timed_env(*args, **kwargs):
+        env = make_env(*args, **kwargs)
+        env.step = timers.item("env_step", env.step)
+        env.physics_state = timers.item("physics_state", env.physics_state)
+        return env
+    ene.make_env = timed_env
+
+
+def run_items(script: str, argv: list, first: int, last: int, out: str):
+    """Run `script` with `argv` in this process, its items timed, and write the table to `out` (CSV)."""
+    import torch
+
+    source = open(script).read()
+    head, main = source.split('\nif __name__ == "__main__":\n', 1)
+    module = types.ModuleType("timed_script")  # a module of its own: pickle finds the script's classes there
+    module.__file__ = os.path.abspath(script)
+    sys.modules[module.__name__] = module
+    namespace = module.__dict__
+    sys.argv = [script, *argv]
+    sys.path.insert(0, os.path.dirname(os.path.abspath(script)))
+    exec(compile(head, script, "exec"), namespace)
+    cuda = torch.cuda.is_available() and "--no-cuda" not in argv
+    timers = Timers(first, last, cuda)
+    timers.on_window_end = lambda t: write_items(t, out)
+    instrument(namespace, timers)
+    offset = head.count("\n") + 1  # the main block keeps its line numbers in tracebacks
+    body = "\n" * offset + "if True:\n" + main
+    try:
+        exec(compile(body, script, "exec"), namespace)
+    except SystemExit as e:
+        if e.code not in (None, 0):
+            raise
+    if timers.on_window_end is not None:
+        raise SystemExit(f"items: the run ended before step {last}")
+    with open(out, "a") as f:  # the evaluations after the window too
+        for name, seconds in timers.excluded.items():
+            f.write(f"# {name}: {len(seconds)} calls, seconds each: {' '.join(f'{s:.2f}' for s in seconds)}\n")
+
+
+def write_items(timers: Timers, out: str):
+    rows = timers.table()
+    with open(out, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: round(v, 2) if isinstance(v, float) else v for k, v in r.items()})
+        f.write(f"# {len(timers.step_seconds)} plain steps from {timers.first} to {timers.last} "
+                f"({timers.skipped_steps} left out: an evaluation, feedback round or state write); "
+                f"GPU timing: {timers.cuda}\n")
+    print_table(rows)
+    sys.stdout.flush()
+
+
+def print_table(rows: list):
+    print(f"{'item':34s} {'calls/step':>10s} {'host us':>9s} {'gpu us':>9s} {'host us/step':>12s} {'share':>6s}")
+    for r in rows:
+        print(f"{r['item']:34s} {r['calls_per_step']:10.2f} {r['host_us_mean']:9.1f} {r['gpu_us_mean']:9.1f} "
+              f"{r['host_us_per_step']:12.1f} {100 * r['share_of_step']:5.1f}%")
+
+
+def append_csv(path: str, row: dict):
+    new = not os.path.exists(path)
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="part", required=True)
+    p = sub.add_parser("items", help="one instrumented run: items.csv")
+    p.add_argument("out")
+    p.add_argument("--from-step", type=int, required=True)
+    p.add_argument("--to-step", type=int, required=True)
+    p.add_argument("script")
+    p.add_argument("args", nargs=argparse.REMAINDER)
+    p = sub.add_parser("rates", help="the steady-state rates of one configuration: a row of aggregate.csv")
+    p.add_argument("config_dir")
+    p.add_argument("out")
+    p.add_argument("--from-step", type=int, required=True)
+    p.add_argument("--to-step", type=int, required=True)
+    p.add_argument("--name", required=True)
+    p.add_argument("--mps", default="no")
+    p.add_argument("--started", type=int, default=0, help="runs started (missing ones count as cut off)")
+    p = sub.add_parser("window", help="one run's window: window.json")
+    p.add_argument("run_dir")
+    p.add_argument("log")
+    p.add_argument("out")
+    p.add_argument("--from-step", type=int, required=True)
+    p.add_argument("--to-step", type=int, required=True)
+    p.add_argument("--feedback-steps", type=int, nargs="*", default=[])
+    p = sub.add_parser("exact", help="a JUnit report as exact.csv")
+    p.add_argument("junit")
+    p.add_argument("out")
+    args = parser.parse_args()
+    if args.part == "items":
+        run_items(args.script, args.args, args.from_step, args.to_step, args.out)
+    elif args.part == "rates":
+        runs = {os.path.basename(r): points(r) for r in sorted(glob.glob(os.path.join(args.config_dir, "runs", "*")))}
+        result = window_rates(runs, args.from_step, args.to_step)
+        row = dict(config=args.name, mps=args.mps, runs_started=args.started or len(runs),
+                   runs_in_window=result["runs_in_window"], window=f"{args.from_step}-{result['last']}",
+                   sum_steps_per_s=round(result["sum"], 1),
+                   overlap_steps_per_s=None if result["overlap_rate"] is None else round(result["overlap_rate"], 1),
+                   overlap_seconds=round(result["overlap_seconds"], 1),
+                   per_run=" ".join(f"{n}:{r:.1f}" for n, r in result["per_run"].items()))
+        append_csv(args.out, row)
+        print(", ".join(f"{k}={v}" for k, v in row.items()))
+    elif args.part == "window":
+        result = window_shares(points(args.run_dir), open(args.log).read(), args.from_step, args.to_step,
+                               args.feedback_steps)
+        result = {k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()}
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        print(json.dumps(result))
+    elif args.part == "exact":
+        rows = junit_table(args.junit)
+        with open(args.out, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(["test", "outcome", "message"])
+            writer.writerows(rows)
+        counts = {o: sum(r[1] == o for r in rows) for o in ("passed", "failure", "error", "skipped")}
+        print("exact: " + ", ".join(f"{n} {o}" for o, n in counts.items()))
+
+
+if __name__ == "__main__":
+    main()

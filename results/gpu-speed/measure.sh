@@ -1,0 +1,180 @@
+#!/bin/bash
+# Issue 32's prepared GPU measurement, in at most 9 minutes: `bash results/gpu-speed/measure.sh OUT [--dry-run]`.
+# Every part has a time budget and writes its result file into OUT as it ends, so a call cut off still returns what
+# finished. The runs live in a work folder outside OUT: their state files are about 1 GB each.
+# Parts, in order (README "The prepared measurement (issue 32)"):
+#   items      host and GPU microseconds of each step item of a captured run (measure.py items) -> items.csv
+#   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
+#   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
+#   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide
+#              -> aggregate.csv (one row per configuration, written as each ends)
+# Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
+# --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
+set -u
+out=${1:?usage: measure.sh OUT [--dry-run]}
+dry=${2:-}
+root=$(cd "$(dirname "$0")/../.." && pwd)
+py=${PYTHON:-python3}
+helper="$root/results/gpu-speed/measure.py"
+work=${MEASURE_WORK:-/tmp/measure-work}
+mkdir -p "$out"
+out=$(cd "$out" && pwd)
+rm -rf "$work"
+mkdir -p "$work"
+exec > >(tee -a "$out/measure.log") 2>&1
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1 PYTHONWARNINGS=ignore
+
+# Settings. Every run of a timed part has the same flags but for its length, evaluations and state writes.
+# The steady-state window lies in the learned-reward phase: after the first feedback round (at learning starts +
+# unsupervised steps) and the critic's re-capture, before the next round and with no evaluation inside.
+if [ "$dry" = "--dry-run" ]; then
+  base=(--env-id cheetah-run --noise 0.9 --learning-starts 200 --unsup-steps 100 --episode-length 100
+        --hidden-dim 32 --batch-size 32 --segment-size 20 --max-feedback 40 --queries-per-round 5
+        --feedback-freq 300 --reward-epochs 5 --buffer-size 20000 --eval-episodes 2 --threads 1 --log-freq 50)
+  gpu=()
+  items_steps=(400 600)  # the items' window; the run ends one step after it
+  items_flags=(--eval-freq 200)
+  window_steps=(400 1200)
+  window_flags=(--total-timesteps 1250 --eval-freq 400 --checkpoint-freq 500)
+  window_rounds=(600 900 1200)
+  agg_steps=(400 500)
+  agg_total=501
+  configs=("no x2 2" "yes x2 2")  # MPS cannot start on the CPU: its row is skipped
+  exact_workers=1
+  budget_items=120 budget_exact=60 budget_window=150 budget_aggregate=150
+  declare -A config_budget=([x2]=70)
+else
+  base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
+  gpu=(--cuda-graph)
+  items_steps=(2200 2800)
+  items_flags=(--eval-freq 1000 --parallel-eval)  # its evaluations time --parallel-eval; the window's the serial one
+  window_steps=(3000 23000)
+  window_flags=(--total-timesteps 23100 --checkpoint-freq 10000)  # the default evaluations: every 5000 steps
+  window_rounds=(7000 12000 17000 22000)
+  agg_steps=(2200 2500)
+  agg_total=2501  # one evaluation, at the end, after the window
+  # the most telling first: a call cut off still compares 8 runs without and with MPS
+  configs=("no x8 8" "yes x8 8" "no x4 4" "yes x4 4" "yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "yes x1 1")
+  exact_workers=12
+  budget_items=60 budget_exact=75 budget_window=135 budget_aggregate=245
+  declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
+fi
+total=$((budget_items + budget_exact + budget_window + budget_aggregate))
+
+mps_on=0
+pids=()
+archive() {  # event files and logs only: checkpoints, states and preference files are too large
+  tar czf "$out/runs.tgz.tmp" -C "$work" --exclude='*.pt' --exclude='*.npz' --exclude='*.cleanrl_model' . 2>/dev/null \
+    && mv "$out/runs.tgz.tmp" "$out/runs.tgz"
+}
+mps_quit() {
+  if [ "$mps_on" = 1 ]; then
+    echo quit | nvidia-cuda-mps-control
+    mps_on=0
+    echo "$(date +%T) MPS daemon quit"
+  fi
+}
+finish() {
+  mps_quit
+  archive
+  echo "$(date +%T) done in $SECONDS s; files: $(cd "$out" && ls | tr '\n' ' ')"
+}
+trap finish EXIT
+trap 'echo "stopped by a signal"; exit 130' INT TERM
+
+run() {  # folder, name, seconds, flags...: one run in the background, killed at its budget
+  local dir=$1 name=$2 seconds=$3
+  shift 3
+  mkdir -p "$dir"
+  (cd "$dir" && exec timeout -s KILL "$seconds" "$py" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
+    --run-name "$name" "$@" > "$name.log" 2>&1) &
+  pids+=($!)
+}
+
+wait_runs() {  # by id: a plain `wait` would also wait for the console's tee
+  wait "${pids[@]}"
+  pids=()
+}
+
+part_start() {
+  echo "$(date +%T) [$SECONDS s] part $1 (budget $2 s)"
+}
+
+echo "$(date +%T) plan: items ${budget_items} s, exact ${budget_exact} s, window ${budget_window} s, aggregate" \
+  "${budget_aggregate} s; ${total} s in all; ${dry:-GPU}"
+echo "flags of every timed run: ${base[*]} ${gpu[*]}"
+"$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available() and \
+torch.cuda.get_device_name(0))"
+command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv,noheader
+
+part_start items "$budget_items"
+mkdir -p "$work/items"
+(cd "$work/items" && timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
+  --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
+  "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) \
+  || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
+[ -f "$out/items.csv" ] && cat "$out/items.csv"
+archive
+
+part_start exact "$budget_exact"
+(cd "$root" && R2N_TEST_CUDA=1 timeout -s KILL "$budget_exact" "$py" -m pytest -q -p no:cacheprovider \
+  tests/test_cuda_graph.py -n "$exact_workers" --junitxml="$work/exact.xml" > "$work/exact.log" 2>&1)
+echo "exact: pytest exit $? (137: cut off at its budget): $(tail -1 "$work/exact.log")"
+if [ -f "$work/exact.xml" ]; then
+  "$py" "$helper" exact "$work/exact.xml" "$out/exact.csv"
+else
+  tail -20 "$work/exact.log" > "$out/exact.csv"
+fi
+archive
+
+part_start window "$budget_window"
+run "$work/window" window "$budget_window" "${window_flags[@]}"
+wait_runs
+"$py" "$helper" window "$work/window/runs/window" "$work/window/window.log" "$out/window.json" \
+  --from-step "${window_steps[0]}" --to-step "${window_steps[1]}" --feedback-steps "${window_rounds[@]}" \
+  || echo "window: no result; the log's end: $(tail -3 "$work/window/window.log")"
+# the same flags as the aggregate's runs: its early steps are the one-run row without MPS
+"$py" "$helper" rates "$work/window" "$out/aggregate.csv" --name x1-window --mps no --from-step "${agg_steps[0]}" \
+  --to-step "${agg_steps[1]}"
+archive
+
+config() {  # mps (yes or no), name, runs, flags...: runs started together, then their row of aggregate.csv
+  local mps=$1 name=$2 n=$3
+  shift 3
+  local seconds=${config_budget[$name]}
+  local left=$((part_end - SECONDS))
+  if [ "$left" -lt "$seconds" ]; then
+    echo "$(date +%T) $name (MPS $mps): skipped, ${left} s left of the part and it needs ${seconds} s"
+    return
+  fi
+  if [ "$mps" = yes ] && [ "$mps_on" = 0 ]; then
+    if nvidia-cuda-mps-control -d; then
+      mps_on=1
+      echo "$(date +%T) MPS daemon started"
+    else
+      echo "$(date +%T) $name (MPS yes): skipped, MPS did not start"
+      return
+    fi
+  fi
+  [ "$mps" = no ] && mps_quit
+  local dir="$work/aggregate/$name-mps-$mps"
+  echo "$(date +%T) [$SECONDS s] $name (MPS $mps): $n run(s), budget $seconds s, flags: $*"
+  for i in $(seq 1 "$n"); do
+    run "$dir" "run$i" "$seconds" --total-timesteps "$agg_total" --eval-freq 100000 --seed "$i" "$@"
+  done
+  if [ "$mps" = yes ]; then  # whether the runs go through the daemon
+    (sleep 20 && echo "MPS servers: $(echo get_server_list | nvidia-cuda-mps-control 2>&1 | tr '\n' ' ')") &
+  fi
+  wait_runs
+  "$py" "$helper" rates "$dir" "$out/aggregate.csv" --name "$name" --mps "$mps" --started "$n" \
+    --from-step "${agg_steps[0]}" --to-step "${agg_steps[1]}"
+  archive
+}
+
+part_start aggregate "$budget_aggregate"
+part_end=$((SECONDS + budget_aggregate))
+for c in "${configs[@]}"; do
+  config $c
+done
+mps_quit
+[ -f "$out/aggregate.csv" ] && cat "$out/aggregate.csv"
