@@ -75,12 +75,13 @@ mps_quit() {
   fi
 }
 finish() {
+  kill $(jobs -p) 2> /dev/null  # a part still running when a signal came (each job is its `timeout`)
   mps_quit
   archive
   echo "$(date +%T) done in $SECONDS s; files: $(cd "$out" && ls | tr '\n' ' ')"
 }
 trap finish EXIT
-trap 'echo "stopped by a signal"; exit 130' INT TERM
+trap 'echo "stopped by a signal"; exit 130' INT TERM  # parts run in the background: `wait` lets the trap in at once
 
 run() {  # folder, name, seconds, flags...: one run in the background, killed at its budget
   local dir=$1 name=$2 seconds=$3
@@ -109,16 +110,17 @@ command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=name,memory.used,mem
 
 part_start items "$budget_items"
 mkdir -p "$work/items"
-(cd "$work/items" && timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
+(cd "$work/items" && exec timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
   --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
-  "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) \
-  || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
+  "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
+wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
 [ -f "$out/items.csv" ] && cat "$out/items.csv"
 archive
 
 part_start exact "$budget_exact"
-(cd "$root" && R2N_TEST_CUDA=1 timeout -s KILL "$budget_exact" "$py" -m pytest -q -p no:cacheprovider \
-  tests/test_cuda_graph.py -n "$exact_workers" --junitxml="$work/exact.xml" > "$work/exact.log" 2>&1)
+(cd "$root" && R2N_TEST_CUDA=1 exec timeout -s KILL "$budget_exact" "$py" -m pytest -q -p no:cacheprovider \
+  tests/test_cuda_graph.py -n "$exact_workers" --junitxml="$work/exact.xml" > "$work/exact.log" 2>&1) &
+wait $!
 echo "exact: pytest exit $? (137: cut off at its budget): $(tail -1 "$work/exact.log")"
 if [ -f "$work/exact.xml" ]; then
   "$py" "$helper" exact "$work/exact.xml" "$out/exact.csv"
