@@ -1039,7 +1039,7 @@ class CudaGraph:
 
     def __init__(self, step):
         self.step, self.graph, self.agent_objects, self.fixed, self.calls = step, None, [], None, 0
-        self.seen, self.grads = None, []
+        self.params, self.seen, self.grads = [], None, []
 
     @staticmethod
     def tensors(inputs) -> list:
@@ -1062,28 +1062,29 @@ class CudaGraph:
                 torch.get_float32_matmul_precision())
 
     @staticmethod
-    def signature(agent, inputs) -> tuple:
+    def signature(inputs, parameters: list) -> tuple:
         """What a graph depends on besides tensor values: the inputs' shapes and dtypes, the devices, each parameter's
         `requires_grad` and storage, the TF32 settings. It reads host attributes only, so a call adds no sync."""
-        tensors, parameters = CudaGraph.tensors(inputs), CudaGraph.parameters(agent)
-        return (tuple((t.shape, t.dtype) for t in tensors),
-                tuple(sorted({str(t.device) for t in tensors + parameters})),
+        tensors = CudaGraph.tensors(inputs)
+        return (tuple((t.shape, t.dtype) for t in tensors), frozenset(t.device for t in tensors + parameters),
                 tuple((p.requires_grad, p.data_ptr()) for p in parameters), CudaGraph.tf32())
 
     def stale(self, agent, inputs) -> bool:
         """Whether the graph must be captured again; raises where a new capture would be wrong."""
         objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
-        signature = self.signature(agent, inputs)
+        replaced = not self.agent_objects or any(a is not b for a, b in zip(objects, self.agent_objects))
+        params = self.parameters(agent) if replaced else self.params  # listing them is slow: once per agent
+        signature = self.signature(inputs, params)
         # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
         if self.seen is not None and signature[1] != self.seen[1]:
-            raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {', '.join(self.seen[1])} and is "
-                               f"now called on {', '.join(signature[1])}; a CUDA graph replays on one device")
+            old, new = (", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1]))
+            raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {old} and is now called on {new}; "
+                               "a CUDA graph replays on one device")
         # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture records what eager now runs.
         # A replaced `.grad` (zero_grad's None): a replay would write the old one, which the optimiser no longer reads.
-        stale = (any(a is not b for a, b in zip(objects, self.agent_objects)) or fixed != self.fixed
-                 or signature != self.seen or any(p.grad is not g for p, g in self.grads))
+        stale = replaced or fixed != self.fixed or signature != self.seen or any(p.grad is not g for p, g in self.grads)
         if stale:  # held here, the replaced objects keep their ids: no false match
-            self.agent_objects, self.fixed, self.seen, self.grads = objects, fixed, signature, []
+            self.agent_objects, self.fixed, self.params, self.seen, self.grads = objects, fixed, params, signature, []
         return stale
 
     def __call__(self, agent, *inputs):
@@ -1100,7 +1101,7 @@ class CudaGraph:
         if self.graph is None:
             self.inputs = [type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
                            if isinstance(x, torch.Tensor) else x for x in inputs]
-            before = [(p, p.grad, None if p.grad is None else p.grad._version) for p in self.parameters(agent)]
+            before = [(p, p.grad, None if p.grad is None else p.grad._version) for p in self.params]
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 self.outputs = self.step(agent, *self.inputs)
