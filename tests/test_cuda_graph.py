@@ -231,15 +231,16 @@ if NEW_TF32:
 def test_the_signature_sees_each_change(change, float32_flags):
     module = importlib.import_module("pebble")
     agent, args = tiny_agent(module, torch.device("cpu"))
-    signature = module.CudaGraph.signature(agent, (random_batch(module, 0, "cpu"), args.gamma))
+    parameters = module.CudaGraph.parameters
+    signature = module.CudaGraph.signature((random_batch(module, 0, "cpu"), args.gamma), parameters(agent))
     module.critic_gradients(agent, random_batch(module, 1, "cpu"), args.gamma)  # new `.grad` tensors, new values
-    assert module.CudaGraph.signature(agent, (random_batch(module, 2, "cpu"), args.gamma)) == signature
+    assert module.CudaGraph.signature((random_batch(module, 2, "cpu"), args.gamma), parameters(agent)) == signature
     data = random_batch(module, 3, "cpu")
     if change in INPUT_CHANGES:
         data = INPUT_CHANGES[change](data)
     else:
         STATE_CHANGES[change](agent)
-    assert module.CudaGraph.signature(agent, (data, args.gamma)) != signature
+    assert module.CudaGraph.signature((data, args.gamma), parameters(agent)) != signature
 
 
 @pytest.mark.parametrize("script", PBRL + ORACLES)
@@ -257,6 +258,12 @@ def test_each_step_is_captured_once(script, monkeypatch, fake_cuda):
     assert len(fake_cuda) == 3 and all(wrapped.graph is not None for wrapped in steps.values())
 
 
+def reset_critic(agent):
+    module = importlib.import_module("pebble")
+    critic = module.make_critic(6, 2, module.Args(hidden_dim=32), torch.device("cpu"))
+    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = critic
+
+
 GRADIENTS = {"critic_gradients", "actor_gradients"}  # the actor's backward adds to the critics' `.grad` too
 RECAPTURES = {  # a change after 6 updates, and the steps captured again
     "a batch of 8 rows": GRADIENTS,  # target_update has no tensor input
@@ -266,10 +273,15 @@ RECAPTURES = {  # a change after 6 updates, and the steps captured again
     "the critics' .grad cleared": GRADIENTS,
     "a critic's .grad replaced": GRADIENTS,
     "the actor's .grad cleared": {"actor_gradients"},
+    "PEBBLE's critic reset": set(STEPS),
+    "a new critic optimiser": set(STEPS),  # any agent field replaced
 }
 STATE_CHANGES.update({"the critics' .grad cleared": lambda agent: agent.q_optimizer.zero_grad(),
                       "a critic's .grad replaced": fresh_grad,
-                      "the actor's .grad cleared": lambda agent: agent.actor_optimizer.zero_grad()})
+                      "the actor's .grad cleared": lambda agent: agent.actor_optimizer.zero_grad(),
+                      "PEBBLE's critic reset": reset_critic,
+                      "a new critic optimiser": lambda agent: setattr(agent, "q_optimizer", torch.optim.Adam(
+                          [*agent.qf1.parameters(), *agent.qf2.parameters()]))})
 
 
 @pytest.mark.parametrize("change", RECAPTURES)
@@ -288,6 +300,8 @@ def test_a_change_is_captured_again(change, monkeypatch, fake_cuda, float32_flag
         module.sac_update(agent, random_batch(module, step, "cpu", rows), loop, args)
     assert {name for name, wrapped in steps.items() if wrapped.graph is not graphs[name]} == RECAPTURES[change]
     assert len(fake_cuda) == 3 + len(RECAPTURES[change]) and all(wrapped.graph for wrapped in steps.values())
+    critics = [*agent.qf1.parameters(), *agent.qf2.parameters()]  # the `.grad` a critic graph writes: the critics'
+    assert [p for p, _ in steps["critic_gradients"].grads] == [p for p in critics if p.requires_grad]
 
 
 def test_a_new_device_stops_the_run(monkeypatch, fake_cuda):
