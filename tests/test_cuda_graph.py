@@ -1,9 +1,11 @@
-"""Issue 19 on a GPU: `--cuda-graph` replays the SAC steps' gradients (and the targets' update) as CUDA graphs.
-Skipped where torch sees no GPU, as on CI (docs/running.md: "Testing on a GPU"). On a GPU:
+"""Issue 19: `--cuda-graph` replays the SAC steps' gradients (and the targets' update) as CUDA graphs.
+On the CPU, with CUDA's streams and graphs faked: what `CudaGraph` captures again, and what stops the run.
+The rest is skipped where torch sees no GPU, as on CI (docs/running.md: "Testing on a GPU"). On a GPU:
 - all 12 scripts, through every phase (pre-training, the critic reset and its re-capture, feedback rounds, topology
   updates), give the same TensorBoard points and final weights with and without `--cuda-graph`;
 - after a critic reset the graphs train the new critic (their captured tensors are the new networks' storage);
 - once captured, an SAC update (sampling, replays, eager optimiser steps) never syncs with the host."""
+import contextlib
 import copy
 import importlib
 import sys
@@ -16,10 +18,11 @@ from test_numerics import ARGS
 from test_scripts import ROOT, run_script, scalars
 
 sys.path.insert(0, ROOT)
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU")
+gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU")
 STEPS = ("critic_gradients", "actor_gradients", "target_update")
 
 
+@gpu
 @pytest.mark.parametrize("script", PBRL + ORACLES)
 def test_captured_run_equals_eager(script, tmp_path):
     runs = {}
@@ -43,12 +46,12 @@ def tiny_agent(module, device):
     return module.make_agent(6, 2, args, device), args
 
 
-def random_batch(module, step: int, device):
+def random_batch(module, step: int, device, n: int = 16):
     g = torch.Generator(device=device).manual_seed(step)
-    n = 16
+    stds = {"stds": torch.rand(n, generator=g, device=device)} if "stds" in module.Batch._fields else {}  # RUNE's
     return module.Batch(obs=torch.randn(n, 6, generator=g, device=device), actions=torch.rand(n, 2, generator=g, device=device),
                         rewards=torch.randn(n, generator=g, device=device), next_obs=torch.randn(n, 6, generator=g, device=device),
-                        dones=torch.zeros(n, device=device), indices=torch.arange(n, device=device))
+                        dones=torch.zeros(n, device=device), indices=torch.arange(n, device=device), **stds)
 
 
 @pytest.fixture
@@ -58,6 +61,7 @@ def run_stream():
         yield
 
 
+@gpu
 def test_critic_reset_is_captured_again_and_trains_the_new_critic(monkeypatch, run_stream):
     """Eager and captured twins through 5 updates, PEBBLE's critic reset, and 5 more: equal parameters, and the
     captured critic graph's `.grad` tensors are the new critic's (a stale graph would train the old networks)."""
@@ -92,6 +96,7 @@ def test_critic_reset_is_captured_again_and_trains_the_new_critic(monkeypatch, r
         assert all(torch.equal(p, q) for p, q in zip(parameters, agents["graph"][net])), net
 
 
+@gpu
 def test_a_captured_update_never_syncs_with_the_host(monkeypatch, run_stream):
     module = importlib.import_module("r2n_pebble")  # the sparse optimiser's masked steps included
     device = torch.device("cuda")
@@ -113,3 +118,199 @@ def test_a_captured_update_never_syncs_with_the_host(monkeypatch, run_stream):
     finally:
         torch.cuda.set_sync_debug_mode("default")
     assert all(torch.isfinite(value).all() for value in loop.losses.values())
+
+
+@gpu
+def test_a_new_batch_size_is_captured_again_and_equals_eager(monkeypatch, run_stream):
+    """Eager and captured twins through 5 updates of 16 rows and 5 of 8: equal parameters. Without a new capture, the
+    8 rows would be copied into the graph's 16-row inputs."""
+    module = importlib.import_module("pebble")
+    device = torch.device("cuda")
+    originals, parameters = {name: getattr(module, name) for name in STEPS}, {}
+    for mode in ("eager", "graph"):
+        for name, step in originals.items():
+            monkeypatch.setattr(module, name, module.CudaGraph(step) if mode == "graph" else step)
+        agent, args = tiny_agent(module, device)
+        loop = module.Loop()
+        torch.manual_seed(1)
+        for step in range(10):
+            module.sac_update(agent, random_batch(module, step, device, 16 if step < 5 else 8), loop, args)
+        parameters[mode] = [p.clone() for p in module.CudaGraph.parameters(agent)]
+        if mode == "graph":
+            assert module.critic_gradients.inputs[0].obs.shape == (8, 6)
+            assert module.actor_gradients.inputs[0].obs.shape == (8, 6)
+    assert all(torch.equal(p, q) for p, q in zip(parameters["eager"], parameters["graph"]))
+
+
+# On the CPU: CudaGraph's decisions, with CUDA's streams and graphs faked.
+
+
+@pytest.fixture
+def fake_cuda(monkeypatch):
+    """Warm-up and capture calls run eagerly, and a replay does nothing. Returns the list of graphs made."""
+    graphs = []
+
+    class Graph:
+        def __init__(self):
+            graphs.append(self)
+
+        def replay(self):
+            pass
+
+    class Stream:
+        def wait_stream(self, other):
+            pass
+
+    monkeypatch.setattr(torch.cuda, "Stream", Stream)
+    monkeypatch.setattr(torch.cuda, "current_stream", Stream)
+    monkeypatch.setattr(torch.cuda, "stream", lambda stream: contextlib.nullcontext())
+    monkeypatch.setattr(torch.cuda, "CUDAGraph", Graph)
+    monkeypatch.setattr(torch.cuda, "graph", lambda graph: contextlib.nullcontext())
+    return graphs
+
+
+@pytest.fixture
+def float32_flags():
+    """Restores the TF32 settings that a test changes: torch >= 2.9's per backend, then the older flags."""
+    backends = [torch.backends.cuda.matmul, torch.backends.cudnn, torch.backends.cudnn.conv, torch.backends.cudnn.rnn]
+    saved = [backend.fp32_precision for backend in backends] if NEW_TF32 else []
+    flags = torch.get_float32_matmul_precision(), torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    yield
+    for backend, value in zip(backends, saved):
+        backend.fp32_precision = value
+    torch.set_float32_matmul_precision(flags[0])
+    torch.backends.cudnn.allow_tf32 = flags[2]
+    # the older flags read back as before: no mix of the two APIs is left to raise in a later test
+    assert (torch.get_float32_matmul_precision(), torch.backends.cuda.matmul.allow_tf32,
+            torch.backends.cudnn.allow_tf32) == flags
+
+
+def captured(module, monkeypatch) -> dict:
+    """The three steps wrapped in `CudaGraph`, as `--cuda-graph` wraps them."""
+    steps = {name: module.CudaGraph(getattr(module, name)) for name in STEPS}
+    for name, step in steps.items():
+        monkeypatch.setattr(module, name, step)
+    return steps
+
+
+def first_parameter(agent):
+    return next(agent.qf1.parameters())
+
+
+def fresh_storage(agent):
+    first_parameter(agent).data = first_parameter(agent).data.clone()
+
+
+def fresh_grad(agent):
+    first_parameter(agent).grad = torch.zeros_like(first_parameter(agent))
+
+
+INPUT_CHANGES = {
+    "an input's shape": lambda data: data._replace(rewards=data.rewards[:8]),
+    "an input's dtype": lambda data: data._replace(dones=data.dones.double()),
+    "an input's device": lambda data: data._replace(indices=data.indices.to("meta")),
+}
+NEW_TF32 = hasattr(torch.backends, "fp32_precision")  # torch >= 2.9's TF32 settings per backend
+STATE_CHANGES = {
+    "a parameter's requires_grad": lambda agent: first_parameter(agent).requires_grad_(False),
+    "a parameter's storage": fresh_storage,
+    "TF32 matmuls": lambda agent: setattr(torch.backends.cuda.matmul, "allow_tf32", True),
+    "cuDNN's TF32": lambda agent: setattr(torch.backends.cudnn, "allow_tf32", False),
+    "the matmul precision": lambda agent: torch.set_float32_matmul_precision("high"),
+}
+if NEW_TF32:
+    STATE_CHANGES.update({
+        "cuBLAS's fp32_precision": lambda agent: setattr(torch.backends.cuda.matmul, "fp32_precision", "tf32"),
+        "cuDNN convolutions' fp32_precision": lambda agent: setattr(torch.backends.cudnn.conv, "fp32_precision",
+                                                                    "ieee"),
+        "cuDNN RNNs' fp32_precision": lambda agent: setattr(torch.backends.cudnn.rnn, "fp32_precision", "ieee"),
+    })
+
+
+@pytest.mark.parametrize("change", [*INPUT_CHANGES, *STATE_CHANGES])
+def test_the_signature_sees_each_change(change, float32_flags):
+    module = importlib.import_module("pebble")
+    agent, args = tiny_agent(module, torch.device("cpu"))
+    parameters = module.CudaGraph.parameters
+    signature = module.CudaGraph.signature((random_batch(module, 0, "cpu"), args.gamma), parameters(agent))
+    module.critic_gradients(agent, random_batch(module, 1, "cpu"), args.gamma)  # new `.grad` tensors, new values
+    assert module.CudaGraph.signature((random_batch(module, 2, "cpu"), args.gamma), parameters(agent)) == signature
+    data = random_batch(module, 3, "cpu")
+    if change in INPUT_CHANGES:
+        data = INPUT_CHANGES[change](data)
+    else:
+        STATE_CHANGES[change](agent)
+    assert module.CudaGraph.signature((data, args.gamma), parameters(agent)) != signature
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_each_step_is_captured_once(script, monkeypatch, fake_cuda):
+    """Through 12 updates, a topology update included: each step's graph is captured once. Another step's new `.grad`
+    tensors and the sparse optimisers' in-place masking do not make a graph stale."""
+    module = importlib.import_module(script[:-3])
+    steps = captured(module, monkeypatch)
+    topology = {"agent_topology_period": 5} if "agent_topology_period" in module.Args.__dataclass_fields__ else {}
+    args = module.Args(hidden_dim=32, batch_size=16, **topology)
+    torch.manual_seed(0)
+    agent, loop = module.make_agent(6, 2, args, torch.device("cpu")), module.Loop()
+    for step in range(12):
+        module.sac_update(agent, random_batch(module, step, "cpu"), loop, args)
+    assert len(fake_cuda) == 3 and all(wrapped.graph is not None for wrapped in steps.values())
+
+
+def reset_critic(agent):
+    module = importlib.import_module("pebble")
+    critic = module.make_critic(6, 2, module.Args(hidden_dim=32), torch.device("cpu"))
+    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = critic
+
+
+GRADIENTS = {"critic_gradients", "actor_gradients"}  # the actor's backward adds to the critics' `.grad` too
+RECAPTURES = {  # a change after 6 updates, and the steps captured again
+    "a batch of 8 rows": GRADIENTS,  # target_update has no tensor input
+    "a parameter's requires_grad": set(STEPS),
+    "a parameter's storage": set(STEPS),
+    "TF32 matmuls": set(STEPS),
+    "the critics' .grad cleared": GRADIENTS,
+    "a critic's .grad replaced": GRADIENTS,
+    "the actor's .grad cleared": {"actor_gradients"},
+    "PEBBLE's critic reset": set(STEPS),
+    "a new critic optimiser": set(STEPS),  # any agent field replaced
+}
+STATE_CHANGES.update({"the critics' .grad cleared": lambda agent: agent.q_optimizer.zero_grad(),
+                      "a critic's .grad replaced": fresh_grad,
+                      "the actor's .grad cleared": lambda agent: agent.actor_optimizer.zero_grad(),
+                      "PEBBLE's critic reset": reset_critic,
+                      "a new critic optimiser": lambda agent: setattr(agent, "q_optimizer", torch.optim.Adam(
+                          [*agent.qf1.parameters(), *agent.qf2.parameters()]))})
+
+
+@pytest.mark.parametrize("change", RECAPTURES)
+def test_a_change_is_captured_again(change, monkeypatch, fake_cuda, float32_flags):
+    module = importlib.import_module("pebble")
+    steps = captured(module, monkeypatch)
+    agent, args = tiny_agent(module, torch.device("cpu"))
+    loop, rows = module.Loop(), 16
+    for step in range(12):  # from the change, 6 updates: 3 calls of each step, the third captures
+        if step == 6:
+            graphs = {name: wrapped.graph for name, wrapped in steps.items()}
+            if change == "a batch of 8 rows":
+                rows = 8
+            else:
+                STATE_CHANGES[change](agent)
+        module.sac_update(agent, random_batch(module, step, "cpu", rows), loop, args)
+    assert {name for name, wrapped in steps.items() if wrapped.graph is not graphs[name]} == RECAPTURES[change]
+    assert len(fake_cuda) == 3 + len(RECAPTURES[change]) and all(wrapped.graph for wrapped in steps.values())
+    critics = [*agent.qf1.parameters(), *agent.qf2.parameters()]  # the `.grad` a critic graph writes: the critics'
+    assert [p for p, _ in steps["critic_gradients"].grads] == [p for p in critics if p.requires_grad]
+
+
+def test_a_new_device_stops_the_run(monkeypatch, fake_cuda):
+    module = importlib.import_module("pebble")
+    captured(module, monkeypatch)
+    agent, args = tiny_agent(module, torch.device("cpu"))
+    loop = module.Loop()
+    for step in range(4):
+        module.sac_update(agent, random_batch(module, step, "cpu"), loop, args)
+    data = random_batch(module, 4, "cpu")._replace(indices=torch.arange(16, device="meta"))
+    with pytest.raises(RuntimeError, match="critic_gradients was captured on cpu and is now called on cpu, meta"):
+        module.sac_update(agent, data, loop, args)
