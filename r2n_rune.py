@@ -233,7 +233,8 @@ class Args:
     teacher: Literal["simulated", "external"] = "simulated"
     """who answers the queries: B-Pref's simulated teacher, or a person or program through files (docs/labelling.md)"""
     preferences: Optional[str] = None
-    """an earlier run's `preferences.npz`: its labels seed the reward model's dataset (they count in the budget)"""
+    """an earlier run's `preferences/` folder (or one `.npz` of it): its labels seed the reward model's dataset (they
+    count in the budget)"""
 
 
 def validate_args(args: Args) -> None:
@@ -867,7 +868,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     keep, labels, sha256, waited = ask_teacher(
         external, queries.next_round, args, loop, obs_dim, segments, true_rewards, physics, global_step,
     )
-    log_queries(queries, f"{run_folder}/preferences.npz", args.env_id, obs_dim, segments, true_rewards, physics,
+    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards, physics,
                 torch.where(keep, labels, torch.nan), global_step, sha256)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
@@ -1267,7 +1268,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     return obs, start_step, resume["elapsed"]
 
 
-# the queries and labels of a run (`preferences.npz`) and the external teacher (docs/labelling.md)
+# the queries and labels of a run (`preferences/`) and the external teacher (docs/labelling.md)
 def write_npz(path: str, **arrays):
     """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -1279,7 +1280,8 @@ def write_npz(path: str, **arrays):
 class QueryLog:
     """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
     physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step; per round, the
-    SHA-256 of the labels file its labels were read from (`--teacher external`; else empty)."""
+    SHA-256 of the labels file its labels were read from (`--teacher external`; else empty). The run's folder
+    `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
 
     def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
@@ -1301,22 +1303,47 @@ class QueryLog:
             self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
                                                 [label_sha256]]).astype("<U64")
 
-    def save(self, path: str, env_id: str, obs_dim: int):
-        write_npz(path, env_id=env_id, obs=self.inputs[..., :obs_dim], actions=self.inputs[..., obs_dim:],
-                  true_rewards=self.true_rewards, physics=self.physics, labels=self.labels, rounds=self.rounds,
-                  steps=self.steps, label_sha256=self.label_sha256)
+    def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
+        """Write one round's queries to `{folder}/{round}.npz` (those from `--preferences`: `seeded.npz`).
+        Each round gets a file of its own, so a round writes its own queries only, not the whole log again."""
+        rows = self.rounds == round_index
+        inputs = self.inputs[rows]
+        sha256 = self.label_sha256[round_index:round_index + 1] if round_index >= 0 else self.label_sha256[:0]
+        name = round_index if round_index >= 0 else "seeded"
+        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim], actions=inputs[..., obs_dim:],
+                  true_rewards=self.true_rewards[rows], physics=self.physics[rows], labels=self.labels[rows],
+                  rounds=self.rounds[rows], steps=self.steps[rows], label_sha256=sha256)
+
+
+def read_preferences(path: str) -> dict:
+    """A run's query log as one set of arrays: its `preferences/` folder (seeded first, then the rounds in order) or
+    a single `.npz` file."""
+    if os.path.isdir(path):
+        rounds = sorted(int(name[:-4]) for name in os.listdir(path) if name.endswith(".npz") and name[:-4].isdigit())
+        seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
+        files = seeded + [f"{path}/{r}.npz" for r in rounds]
+    else:
+        files = [path]
+    parts = []
+    for file in files:
+        with np.load(file) as data:
+            parts.append({name: data[name] for name in data.files})
+    if not parts:
+        raise ValueError(f"no preferences files in {path}")
+    joined = {name: np.concatenate([part[name] for part in parts]) for name in parts[0] if name != "env_id"}
+    return dict(joined, env_id=parts[0]["env_id"])
 
 
 def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
-    """The arrays of an earlier run's `preferences.npz` (`--preferences`); a ValueError with one line if it does not
-    fit this run."""
-    if not os.path.isfile(path):
-        raise ValueError(f"--preferences: no such file: {path}")
+    """The arrays of an earlier run's query log, its `preferences/` folder or one `.npz` of it (`--preferences`);
+    a ValueError with one line if they do not fit this run."""
+    if not os.path.exists(path):
+        raise ValueError(f"--preferences: no such file or folder: {path}")
     try:
-        with np.load(path) as data:
-            arrays = {name: data[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
+        arrays = read_preferences(path)
+        arrays = {name: arrays[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
     except Exception as e:  # not an npz, a missing array
-        raise ValueError(f"--preferences: {path} is not a preferences.npz ({type(e).__name__}: {e})") from None
+        raise ValueError(f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})") from None
     shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
     if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
         raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
@@ -1415,7 +1442,7 @@ def check_labels_unchanged(folder: str, queries: dict):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
             raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 {recorded[:12]}...); put it "
-                             f"back as it was (the run's preferences.npz holds its labels, round {round_index})")
+                             f"back as it was (the run's preferences/{round_index}.npz holds its labels)")
 
 
 LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
@@ -1460,12 +1487,14 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
     return keep, labels, "", 0.0
 
 
-def log_queries(queries: "QueryLog", path: str, env_id: str, obs_dim: int, segments: torch.Tensor,
+def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, segments: torch.Tensor,
                 true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
-    """Add a round's queries to the run's query log and write it to `preferences.npz` (labels: NaN where skipped)."""
-    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), queries.next_round,
-                step, sha256)
-    queries.save(path, env_id, obs_dim)
+    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz` (labels: NaN where
+    skipped)."""
+    round_index = queries.next_round
+    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), round_index, step,
+                sha256)
+    queries.save_round(folder, env_id, obs_dim, round_index)
 
 
 def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
@@ -1597,7 +1626,7 @@ if __name__ == "__main__":
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
-    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences.npz
+    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences/
     # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
@@ -1605,6 +1634,7 @@ if __name__ == "__main__":
     if preferences:  # an earlier run's labels: the first pairs of the dataset, counted in the budget
         inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
         queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
+        queries.save_round(f"{run_folder}/preferences", args.env_id, obs_dim, -1)
         kept = ~np.isnan(preferences["labels"])
         prefs.add(torch.as_tensor(inputs[kept], device=device), torch.as_tensor(preferences["labels"][kept], device=device))
         loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size

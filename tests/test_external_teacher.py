@@ -83,10 +83,10 @@ def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_
     for key, value in queries_of(run, 1).items():
         np.testing.assert_array_equal(value, asked[key])
     assert_same_points(run, reference / "runs" / "ext")
-    with np.load(run / "preferences.npz") as data:
-        digests = [hashlib.sha256(content).hexdigest() for content in (first, second)]
-        assert data["label_sha256"].tolist() == digests  # per round
-        np.testing.assert_array_equal(data["labels"], np.array(json.loads(first) + json.loads(second), np.float32))
+    data = pebble.read_preferences(str(run / "preferences"))
+    digests = [hashlib.sha256(content).hexdigest() for content in (first, second)]
+    assert data["label_sha256"].tolist() == digests  # per round
+    np.testing.assert_array_equal(data["labels"], np.array(json.loads(first) + json.loads(second), np.float32))
     assert status(run)["phase"] == "finished" and status(run)["labelled"] == 10 and status(run)["asked"] == 10
 
 
@@ -161,3 +161,38 @@ def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resum
     pebble.check_labels_unchanged("nowhere", {"rounds": queries.rounds})  # an older state: nothing recorded
     with pytest.raises(ValueError, match="nowhere/labels/1.json is not the labels file this run trained on"):
         pebble.check_labels_unchanged("nowhere", {"label_sha256": queries.label_sha256})
+
+
+def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_log(tmp_path):
+    """`preferences/` gets one file per round; a later round leaves the earlier files as they are, and
+    `read_preferences` joins them (seeded first) into the arrays of the whole query log."""
+    queries = pebble.QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
+    rng = np.random.default_rng(0)
+    folder = str(tmp_path / "preferences")
+
+    def add(n, round_index, step, sha256=""):
+        labels = rng.choice([0.0, 1.0, np.nan], size=n)
+        queries.add(rng.normal(size=(n, 2, 2, 3)), rng.normal(size=(n, 2, 2)), rng.normal(size=(n, 2, 2, 1)), labels,
+                    round_index, step, sha256)
+        queries.save_round(folder, "cartpole-swingup", 2, round_index)
+
+    add(3, -1, -1)
+    add(2, 0, 500, "a" * 64)
+    first = (tmp_path / "preferences" / "0.npz").read_bytes()
+    stamp = os.stat(tmp_path / "preferences" / "0.npz").st_mtime_ns
+    for round_index in range(1, 11):  # past 9: the rounds are read in numeric order
+        add(1, round_index, 500 * (round_index + 1), f"{round_index % 10}" * 64)
+    assert (tmp_path / "preferences" / "0.npz").read_bytes() == first
+    assert os.stat(tmp_path / "preferences" / "0.npz").st_mtime_ns == stamp
+    assert sorted(os.listdir(folder)) == sorted(["seeded.npz"] + [f"{r}.npz" for r in range(11)])
+    data = pebble.read_preferences(folder)
+    np.testing.assert_array_equal(data["obs"], queries.inputs[..., :2].astype(np.float32))
+    np.testing.assert_array_equal(data["actions"], queries.inputs[..., 2:].astype(np.float32))
+    for name in ("true_rewards", "physics", "labels", "rounds", "steps", "label_sha256"):
+        np.testing.assert_array_equal(data[name], getattr(queries, name), err_msg=name)
+    assert data["rounds"].tolist() == [-1] * 3 + [0] * 2 + list(range(1, 11))
+    assert str(data["env_id"]) == "cartpole-swingup"
+    # one file reads alone, as an earlier whole-log `.npz` does
+    np.testing.assert_array_equal(pebble.read_preferences(f"{folder}/0.npz")["labels"], queries.labels[3:5])
+    with pytest.raises(ValueError, match="no preferences files in"):
+        pebble.read_preferences(str(tmp_path))

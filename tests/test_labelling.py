@@ -1,4 +1,4 @@
-"""Real preferences (docs/labelling.md): `preferences.npz`, the external-teacher file protocol with a
+"""Real preferences (docs/labelling.md): the query log `preferences/`, the external-teacher file protocol with a
 scripted teacher, `--preferences` reuse, and the labelling page in a real headless Chromium."""
 import hashlib
 import json
@@ -81,8 +81,7 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
     values = scalars(str(run))
     assert values["pbrl/total_feedback"] == [5, 10] and values["pbrl/labeled_feedback"] == [5, 9]
-    with np.load(run / "preferences.npz") as data:
-        saved = {key: data[key] for key in data}
+    saved = pebble.read_preferences(str(run / "preferences"))
     expected = answers + round1[:4] + [np.nan]
     np.testing.assert_array_equal(saved["labels"], np.array(expected, np.float32))
     assert saved["rounds"].tolist() == [0] * 5 + [1] * 5 and saved["steps"].tolist() == [500] * 5 + [1000] * 5
@@ -106,8 +105,9 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     first = tmp_path / "first"
     first.mkdir()
     run_script("pebble.py", TINY + ["--run-name", "a"], first)
-    with np.load(first / "runs" / "a" / "preferences.npz") as data:
-        saved = {key: data[key] for key in data}
+    folder = first / "runs" / "a" / "preferences"
+    assert sorted(os.listdir(folder)) == ["0.npz", "1.npz", "2.npz", "3.npz"]  # a file per round, each written once
+    saved = pebble.read_preferences(str(folder))
     assert saved["obs"].shape == (20, 2, 20, 51) and saved["rounds"].tolist() == [r for r in range(4) for _ in range(5)]
     values = scalars(str(first / "runs" / "a"))
     assert np.sum(~np.isnan(saved["labels"])) == values["pbrl/labeled_feedback"][-1]
@@ -123,15 +123,21 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     # --preferences: the 20 labels seed the next run's dataset and count in its budget (30: two more rounds of 5)
     second = tmp_path / "second"
     second.mkdir()
-    path = str(first / "runs" / "a" / "preferences.npz")
+    path = str(folder)
     run_script("pebble.py", TINY + ["--run-name", "b", "--preferences", path, "--max-feedback", "30"], second)
     values = scalars(str(second / "runs" / "b"))
     assert values["pbrl/total_feedback"] == [25, 30]
-    with np.load(second / "runs" / "b" / "preferences.npz") as data:
-        assert data["rounds"].tolist() == [-1] * 20 + [0] * 5 + [1] * 5
-        np.testing.assert_array_equal(data["obs"][:20], saved["obs"])
+    data = pebble.read_preferences(str(second / "runs" / "b" / "preferences"))
+    assert data["rounds"].tolist() == [-1] * 20 + [0] * 5 + [1] * 5
+    np.testing.assert_array_equal(data["obs"][:20], saved["obs"])
+    # one file of the folder seeds a run too: round 3's 5 labels
+    run_script("pebble.py", TINY + ["--run-name", "c", "--preferences", f"{path}/3.npz", "--max-feedback", "15"], second)
+    data = pebble.read_preferences(str(second / "runs" / "c" / "preferences"))
+    assert data["rounds"].tolist() == [-1] * 5 + [0] * 5 + [1] * 5
+    np.testing.assert_array_equal(data["labels"][:5], saved["labels"][15:])
     for extra, message in [
-        (["--preferences", "missing.npz"], "--preferences: no such file"),
+        (["--preferences", "missing.npz"], "--preferences: no such file or folder: missing.npz"),
+        (["--preferences", str(second)], "is not a run's preferences"),
         (["--preferences", path, "--max-feedback", "10"], "holds 20 queries, more than --max-feedback 10"),
         (["--preferences", path, "--segment-size", "10"], "this run needs cartpole-swingup, 10 x 52"),
     ]:
@@ -225,10 +231,10 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         assert scalars(str(run))["pbrl/labeled_feedback"] == [4, 9]
         # the labels on disk are the training data, and the run's record of them; the page says the run finished
         files = [(run / "labels" / f"{r}.json").read_bytes() for r in (0, 1)]
-        with np.load(run / "preferences.npz") as data:
-            expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)]
-            np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
-            assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files]  # per round
+        data = pebble.read_preferences(str(run / "preferences"))
+        expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)]
+        np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
+        assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files]  # per round
         WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
         request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST",
                                          headers={"Content-Type": "application/json"})
