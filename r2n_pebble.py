@@ -660,7 +660,8 @@ class SparseOptimizer:
         if self.sparsity == 0:
             return self.optimizer.step()
         self.steps += 1
-        self.topology_updates += (update_topology := self.steps % self.period == 0)
+        update_topology = self.steps % self.period == 0
+        self.topology_updates += update_topology
         dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
         for name, weight in self.layers.items():
             weight.grad.mul_(self.masks[name])
@@ -672,17 +673,6 @@ class SparseOptimizer:
             state = self.optimizer.state[self.layers[name]]
             rigl_update_(self.layers[name], self.masks[name], grad, self.drop_fraction,
                          [state["exp_avg"], state["exp_avg_sq"]])
-
-    def state_dict(self) -> dict:
-        """The inner optimizer's state, the masks and the counters (the weights are saved with their networks)."""
-        counters = {name: value for name, value in vars(self).items() if isinstance(value, int)}
-        return {"optimizer": self.optimizer.state_dict(), "masks": self.masks, "counters": counters}
-
-    def load_state_dict(self, state: dict):
-        self.optimizer.load_state_dict(state["optimizer"])
-        for name, mask in self.masks.items():
-            mask.copy_(state["masks"][name])
-        vars(self).update(state["counters"])
 
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
@@ -1059,10 +1049,14 @@ PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of t
 def state_of(obj):
     """What `state.pt` keeps of an object.
 
-    That is a tensor itself, `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
-    or for another plain object (episode store, statistics) its tensors and numbers."""
+    That is a tensor itself, a sparse optimizer's inner state with its masks and counters, `obj.state_dict()`, a
+    dataclass field by field, a buffer's stored rows (`stored_rows`), or for another plain object (episode store,
+    statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
+    if hasattr(obj, "masks"):  # the weights are saved with their networks
+        counters = {name: value for name, value in vars(obj).items() if isinstance(value, int)}
+        return {"optimizer": obj.optimizer.state_dict(), "masks": obj.masks, "counters": counters}
     if hasattr(obj, "state_dict"):
         return obj.state_dict()
     if dataclasses.is_dataclass(obj):
@@ -1111,6 +1105,11 @@ def load_state_(obj, state):
     """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
     if isinstance(obj, torch.Tensor):
         obj.copy_(state)
+    elif hasattr(obj, "masks"):
+        obj.optimizer.load_state_dict(state["optimizer"])
+        for name, mask in obj.masks.items():
+            mask.copy_(state["masks"][name])
+        vars(obj).update(state["counters"])
     elif hasattr(obj, "load_state_dict"):
         obj.load_state_dict(state)
     elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
