@@ -658,6 +658,23 @@ class Loop:
     last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
 
 
+@torch.no_grad()
+def act(actor: Actor, obs: torch.Tensor) -> torch.Tensor:
+    """The policy's sampled action for one observation."""
+    return actor.get_action(obs.unsqueeze(0))[0][0]
+
+
+@torch.no_grad()
+def store(
+    rb: ReplayBuffer, obs, action, next_obs, terminated: bool, true_reward: float,
+    reward_model: RewardEnsemble, episodes: EpisodeStore, physics: np.ndarray,
+):
+    """Write one step into the run's storage, with the reward the agent learns from."""
+    rb.add(obs, action, next_obs, terminated, true_reward,
+           reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0])  # never the true reward
+    episodes.add(obs, action, true_reward, physics)
+
+
 def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
     `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
@@ -1490,8 +1507,7 @@ if __name__ == "__main__":
             if global_step < args.learning_starts:
                 action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
             else:
-                with torch.no_grad():
-                    action = agent.actor.get_action(obs.unsqueeze(0))[0][0]
+                action = act(agent.actor, obs)
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
@@ -1500,10 +1516,10 @@ if __name__ == "__main__":
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
             next_obs = torch.as_tensor(next_obs, device=device)
-            with torch.no_grad():  # the agent never sees the true reward: it stores the reward ensemble's
-                predicted_reward = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0]
-            rb.add(obs, action, next_obs, terminated, float(true_reward), predicted_reward)
-            episodes.add(obs, action, float(true_reward), physics)
+            store(
+                rb, obs, action, next_obs, terminated, float(true_reward),
+                reward_model, episodes, physics,
+            )
             loop.episode_return, loop.episode_length = loop.episode_return + float(true_reward), loop.episode_length + 1
             obs = next_obs  # CRUCIAL step easy to overlook
             if terminated or truncated:
