@@ -83,13 +83,13 @@ class Args:
 
     # Environment arguments
     env_id: str = "cheetah-run"
-    """the task: a dm_control one as domain-task (cheetah-run), or a gymnasium MuJoCo one (HalfCheetah-v5, Hopper-v5, ...)"""
+    """the task: dm_control as domain-task (cheetah-run), or gymnasium MuJoCo (Hopper-v5, ...)"""
     noise: float = 0.9
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
     noise_resample: bool = True
-    """redraw the noise columns of stored observations whenever they are read back (ANF's semantics)"""
+    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000
@@ -131,7 +131,7 @@ class Args:
     max_feedback: int = 1000
     """total preference queries (the feedback budget)"""
     queries_per_round: Optional[int] = None
-    """queries per feedback round; computed at runtime when left unset: max(1, max_feedback // 100)"""
+    """queries per feedback round (unset: max(1, max_feedback // 100), computed at runtime)"""
     feedback_freq: int = 5000
     """environment steps between feedback rounds"""
     segment_size: int = 50
@@ -157,11 +157,11 @@ class Args:
     relabel_batch_size: int = 16384
     """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
     diagnostic_transitions: int = 10_000
-    """stored transitions (at fixed relative positions in the buffer) behind `pbrl/reward_true_corr`"""
+    """stored transitions behind `pbrl/reward_true_corr` (at fixed relative buffer positions)"""
     diagnostic_pairs: int = 256
-    """fresh segment pairs per round behind `pbrl/heldout_accuracy` (oracle labels, never trained on nor counted)"""
+    """new pairs per round for `pbrl/heldout_accuracy`; oracle labels, not trained on or counted"""
     teacher_beta: float = -1.0
-    """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
+    """rationality: if > 0, Bernoulli(sigmoid(beta * return gap)) labels, else deterministic"""
     teacher_gamma: float = 1.0
     """teacher myopia: step h of H is weighted by gamma^(H-h)"""
     teacher_eps_mistake: float = 0.0
@@ -169,7 +169,7 @@ class Args:
     teacher_eps_skip: float = 0.0
     """the teacher skips pairs where neither segment's return exceeds eps_skip * margin"""
     teacher_eps_equal: float = 0.0
-    """the teacher labels pairs whose returns differ by less than eps_equal * margin as equal (0.5)"""
+    """the teacher labels a pair equal (0.5) if its returns differ by < eps_equal * margin"""
     surf_crop: int = 5
     """SURF: steps stored on each side of the teacher's segment; crop lengths are segment_size +- surf_crop"""
     surf_unlabeled_ratio: int = 10
@@ -203,7 +203,8 @@ class Args:
     agent_topology_period: int = 1000
     """SAC optimiser steps between topology updates of actor and critics"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched; none of them changes what it learns
+    # Run settings: where the run writes, what it keeps, how it is watched.
+    # None of them changes what it learns.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -211,14 +212,18 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be used when available"""
     compile: bool = False
-    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
-    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    """torch.compile the SAC steps (critic, actor and temperature, target). Faster on a GPU.
+    Numerics are within float tolerance of eager.
+    analyze.py never averages or compares runs with other numerics flags."""
     tf32: bool = False
-    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
+    Faster; numerics differ from FP32."""
     cuda_graph: bool = False
-    """replay the SAC steps' gradients as CUDA graphs (a GPU only): faster, the same numbers as eager on that GPU"""
+    """replay the SAC steps' gradients as CUDA graphs (GPU only).
+    Faster; the same numbers as eager on that GPU."""
     parallel_eval: bool = False
-    """step the evaluation envs at once, each in a process of its own: faster where cores are free, the same returns"""
+    """step the evaluation envs at once, each in its own process.
+    Faster where cores are free; the same returns."""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -226,27 +231,31 @@ class Args:
     wandb_entity: Optional[str] = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`).
+    Needs the `video` extra."""
     save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model`.
+    It is written at every evaluation."""
     threads: Optional[int] = None
-    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
     run_name: Optional[str] = None
-    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
+    A folder holding a `state.pt` is resumed."""
     state_minutes: float = 10.0
-    """write the full training state `runs/{run_name}/state.pt` after the step that ends this many minutes of wall time
-    since the last one, and on SIGTERM / SIGUSR2 (a 1024-wide state is about 1 GB: keep writes rare)"""
+    """write the full training state `runs/{run_name}/state.pt` every this many wall-time minutes.
+    It is written after the step that ends the interval, and on SIGTERM / SIGUSR2.
+    A 1024-wide state is about 1 GB, so keep writes rare."""
     checkpoint_freq: Optional[int] = None
     """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
     teacher: Literal["simulated", "external"] = "simulated"
-    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (docs/labelling.md)"""
+    """who answers: B-Pref's simulated teacher, or a person/program via files (docs/labelling.md)"""
     preferences: Optional[str] = None
-    """an earlier run's `preferences/` folder (or one `.npz` of it): its labels seed the reward model's dataset (they
-    count in the budget)"""
+    """an earlier run's `preferences/` folder, or one `.npz` of it.
+    Its labels seed the reward model's dataset and count in the budget."""
 
 
 def validate_args(args: Args) -> None:
