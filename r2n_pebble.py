@@ -1,26 +1,26 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""PEBBLE: preference-based RL with unsupervised pre-training and relabelling, in an Extremely Noisy Environment.
+"""PEBBLE, in an Extremely Noisy Environment: PbRL with unsupervised pre-training and relabelling.
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
-Unsupervised Pre-training" (ICML 2021), as used by the R2N paper (Muslimani et al., AAMAS 2025), with the paper's
-appendix defaults. The loop, one iteration per env step:
+Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
+Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
+AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
-2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std). It is computed on
-   the full observation, noise included, as the paper's PEBBLE does.
-3. at `learning_starts + unsup_steps`: first feedback round (uniform sampling), relabel, reset the critic, then
-   `reset_updates` SAC updates.
-4. every `feedback_freq` steps while budget is left: a feedback round (sample queries, simulated teacher, train the
-   reward ensemble on all labels so far, relabel the *whole* replay buffer); one SAC update per step on the learned
-   reward.
+2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
+   As in the paper's PEBBLE, it is computed on the full observation, noise included.
+3. at `learning_starts + unsup_steps`: the first feedback round (uniform sampling), a relabel,
+   a critic reset, then `reset_updates` SAC updates.
+4. every `feedback_freq` steps while budget is left: a feedback round. It samples queries, asks the
+   simulated teacher, trains the reward ensemble on all labels so far, relabels the *whole* replay
+   buffer. One SAC update per step on the learned reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
 
-Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
-as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
-first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
-accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
-the current reward ensemble and is overwritten by the next relabel.
+Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
+observations whenever they are read back (replay minibatches, reward training, relabelling, query
+scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
+them after round one). Each asked query counts against the budget; labels obtained are logged apart.
+Early stopping's accuracy counts only strict (non-equal) labels. The stored reward of a new
+transition comes from the current reward ensemble; the next relabel overwrites it.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.

@@ -1,19 +1,19 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
 """RUNE on PEBBLE: an exploration bonus from reward-ensemble uncertainty, in an Extremely Noisy Environment.
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
-Unsupervised Pre-training" (ICML 2021), as used by the R2N paper (Muslimani et al., AAMAS 2025), with the paper's
-appendix defaults, plus RUNE's exploration bonus (last paragraphs). The loop, one iteration per
-env step:
+Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
+Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
+AAMAS 2025), with that paper's appendix defaults, plus RUNE's exploration bonus (last paragraphs).
+The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
-2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std). It is computed on
-   the full observation, noise included, as the paper's PEBBLE does.
-3. at `learning_starts + unsup_steps`: first feedback round (uniform sampling), relabel, reset the critic, then
-   `reset_updates` SAC updates.
-4. every `feedback_freq` steps while budget is left: a feedback round (sample queries, simulated teacher, train the
-   reward ensemble on all labels so far, relabel the *whole* replay buffer); one SAC update per step on the learned
-   reward plus RUNE's bonus.
+2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
+   As in the paper's PEBBLE, it is computed on the full observation, noise included.
+3. at `learning_starts + unsup_steps`: the first feedback round (uniform sampling), a relabel,
+   a critic reset, then `reset_updates` SAC updates.
+4. every `feedback_freq` steps while budget is left: a feedback round. It samples queries, asks the
+   simulated teacher, trains the reward ensemble on all labels so far, relabels the *whole* replay
+   buffer. One SAC update per step on the learned reward plus RUNE's bonus.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
 
 RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based Reinforcement Learning",
@@ -23,14 +23,15 @@ transition and recomputed at every relabel), and the critic target uses r + beta
 beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05, `--rune-beta-decay` 1e-5, the
 reference's values; it calls this geometric decay "linear decay").
 
-Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
-as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
-first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
-accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
-the current reward ensemble and is overwritten by the next relabel. RUNE, as in its reference code: the bonus enters
-only the critic target (the actor sees it through Q), in the post-reset updates too, never in pre-training (state-entropy
-reward) nor in evaluation; sigma is not normalised; beta_t decays from step 0, not from the first feedback round.
+Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
+observations whenever they are read back (replay minibatches, reward training, relabelling, query
+scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
+them after round one). Each asked query counts against the budget; labels obtained are logged apart.
+Early stopping's accuracy counts only strict (non-equal) labels. The stored reward of a new
+transition comes from the current reward ensemble; the next relabel overwrites it.
+RUNE, as in its reference code: the bonus enters only the critic target (the actor sees it through
+Q), post-reset updates included, never pre-training (state-entropy reward) nor evaluation. Sigma is
+not normalised. beta_t decays from step 0, not from the first feedback round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
