@@ -13,7 +13,7 @@ AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per en
 4. every `feedback_freq` steps while budget is left: a feedback round. It samples queries, asks the
    simulated teacher, trains the reward ensemble on all labels so far, relabels the *whole* replay
    buffer. One SAC update per step on the learned reward.
-Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
+Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
 Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query
@@ -233,7 +233,8 @@ class Args:
 
 
 def validate_args(args: Args) -> None:
-    """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
+    """Fail fast on bad input, before anything is written:
+    a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
@@ -341,20 +342,24 @@ class Actor(nn.Module):
         mean, log_std = self(obs)
         eps = torch.randn_like(mean)
         x = mean + log_std.exp() * eps
-        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        # the Gaussian log-density written out: torch.distributions
+        # validates its arguments, a host sync per call
         log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        # log|d tanh(x)/dx|, numerically stable
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))
         return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
 
 @torch.no_grad()
 def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
-    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    """One deterministic episode per env, stepped in
+    lockstep (one batched forward); returns true returns."""
     obs = np.stack([env.reset()[0] for env in envs])
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
-        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
+        # MuJoCo would raise on them: a NaN return, which stops the run
+        if not np.isfinite(actions).all():
             return np.full(len(envs), np.nan)
         stepping = np.flatnonzero(running)
         for i in stepping:  # all at once when they are processes (`--parallel-eval`)
@@ -368,7 +373,8 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
 
 # ALGO LOGIC: the storage PEBBLE learns from: replay buffer (relabelled in place), episodes, labelled pairs
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
-    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    """Stored rows as the networks read them: with
+    `--noise-resample`, a copy with fresh noise columns."""
     return x if noise is None else noise.refresh_(x.clone())
 
 
@@ -389,7 +395,8 @@ class ReplayBuffer:
         self.next_obs = torch.zeros((capacity, obs_dim), device=device)
         self.actions = torch.zeros((capacity, act_dim), device=device)
         self.rewards = torch.zeros(capacity, device=device)
-        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
+        # for diagnostics only: the agent never reads it
+        self.true_rewards = torch.zeros(capacity, device=device)
         self.dones = torch.zeros(capacity, device=device)
         self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
 
@@ -703,10 +710,12 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     return metrics
 
 
-# ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
+# ALGO LOGIC: the agent, and the steps of training
+# (top-level functions: what a captured GPU step replays)
 @dataclass
 class Agent:
-    """SAC's networks, temperature and optimisers. The critic fields are replaced when PEBBLE resets the critic."""
+    """SAC's networks, temperature and optimisers.
+    The critic fields are replaced when PEBBLE resets the critic."""
     actor: Actor
     actor_optimizer: optim.Optimizer
     qf1: SoftQNetwork
@@ -721,7 +730,8 @@ class Agent:
 
 
 def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
-    """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+    """Fresh Q1, Q2, their optimiser and targets (PEBBLE
+    resets the critic at the first feedback round)."""
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
@@ -749,8 +759,8 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
 
 
 def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
-    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target. Returns the losses, on the
-    device."""
+    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target.
+    Returns the losses, on the device."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
         next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
@@ -764,7 +774,8 @@ def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
 
 
 def actor_gradients(agent: Agent, data: Batch) -> dict:
-    """The gradients of the actor's loss, and of the temperature's towards the target entropy. Returns the losses."""
+    """The gradients of the actor's loss, and of the temperature's towards the target entropy.
+    Returns the losses."""
     pi, log_pi, _ = agent.actor.get_action(data.obs)
     actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
     agent.actor_optimizer.zero_grad()
@@ -790,13 +801,15 @@ class Loop:
     labeled_feedback: int = 0  # labels obtained (a skipping teacher gives fewer)
     episode_return: float = 0.0
     episode_length: int = 0
-    # resume only: the env's RNG state at the episode's start (None: the seeded first reset), and the episode's actions
-    # so far, to replay the episode on a resume
+    # resume only: the env's RNG state at the episode's start (None: the seeded first
+    # reset), and the episode's actions so far, to replay the episode on a resume
     episode_start: Optional[dict] = None
     episode_actions: list = field(default_factory=list)
     recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
-    losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
-    last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
+    # the latest losses, on the device: read every `log_freq` steps
+    losses: dict = field(default_factory=dict)
+    # the last evaluation's tags: logged again after a resume's purge
+    last_eval: dict = field(default_factory=dict)
 
 
 @torch.no_grad()
@@ -820,8 +833,9 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
     `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
 
-    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`, `actor_gradients`,
-    `target_update`) with compiled or captured versions of themselves. The optimiser steps always run eagerly."""
+    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
+    `actor_gradients`, `target_update`) with compiled or captured versions of themselves.
+    The optimiser steps always run eagerly."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -881,7 +895,8 @@ def feedback_due(step: int, pebble_start: int, loop: Loop, args: Args) -> bool:
 
 
 def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
-    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    """The trained networks of the `saved` objects, for
+    evaluation and debugging (`state.pt` resumes a run)."""
     agent = saved["agent"]
     checkpoint = {
         "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
@@ -892,16 +907,19 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop; in the PbRL scripts, the query
-# log, the label files and the reward diagnostics. The same in every script (sac.py, anf_sac.py: a subset); tested.
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
+# in the PbRL scripts, the query log, the label files and the reward diagnostics.
+# The same in every script (sac.py, anf_sac.py: a subset); tested.
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
-    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
+    If a run that started in the same second took that folder (runs of a sweep
+    differ in noise or budget, which the name does not show), try the next."""
     unix_time = int(time.time())
     while True:
         run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
         try:
-            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            # atomic: exactly one of two racing runs gets the folder
+            os.makedirs(f"runs/{run_name}")
             return run_name
         except FileExistsError:
             unix_time += 1
@@ -909,11 +927,12 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
-    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)` at every step: the labelling
-    page's status of a run that a person labels."""
+    """A console line at every phase change and at most every `interval` seconds of
+    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
+    used and the latest evaluation return. Its clock is the run's training time
+    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
+    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
+    at every step: the labelling page's status of a run that a person labels."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
         self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
@@ -941,13 +960,14 @@ class Progress:
 
 
 class CudaGraph:
-    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of hundreds of small kernels
-    from Python. Tensor inputs (a `Batch`'s too) are copied into the graph's own before each replay; other inputs are
-    fixed. The first calls run eagerly on a side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the
-    capture), the next is captured, later ones replay it and return the same output tensors, overwritten. A graph reads
-    the tensors it was captured with: when the agent's networks or optimisers are replaced (PEBBLE's critic reset), a
-    fixed input changes, its `signature` changes or a `.grad` it writes is replaced, it is captured again. A change of
-    device stops the run."""
+    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of
+    hundreds of small kernels from Python. Tensor inputs (a `Batch`'s too) are copied into the
+    graph's own before each replay; other inputs are fixed. The first calls run eagerly on a
+    side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the capture), the next
+    is captured, later ones replay it and return the same output tensors, overwritten. A graph
+    reads the tensors it was captured with: when the agent's networks or optimisers are
+    replaced (PEBBLE's critic reset), a fixed input changes, its `signature` changes or a
+    `.grad` it writes is replaced, it is captured again. A change of device stops the run."""
     warmup_calls = 2
 
     def __init__(self, step):
@@ -966,8 +986,8 @@ class CudaGraph:
 
     @staticmethod
     def tf32() -> tuple:
-        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per backend, and there the older flags raise
-        once the newer ones are set."""
+        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
+        backend, and there the older flags raise once the newer ones are set."""
         if hasattr(torch.backends, "fp32_precision"):
             return (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision,
                     torch.backends.cudnn.rnn.fp32_precision)
@@ -976,8 +996,9 @@ class CudaGraph:
 
     @staticmethod
     def signature(inputs, parameters: list) -> tuple:
-        """What a graph depends on besides tensor values: the inputs' shapes and dtypes, the devices, each parameter's
-        `requires_grad` and storage, the TF32 settings. It reads host attributes only, so a call adds no sync."""
+        """What a graph depends on besides tensor values: the inputs' shapes and dtypes,
+        the devices, each parameter's `requires_grad` and storage, the TF32 settings.
+        It reads host attributes only, so a call adds no sync."""
         tensors = CudaGraph.tensors(inputs)
         return (tuple((t.shape, t.dtype) for t in tensors), frozenset(t.device for t in tensors + parameters),
                 tuple((p.requires_grad, p.data_ptr()) for p in parameters), CudaGraph.tf32())
@@ -986,15 +1007,17 @@ class CudaGraph:
         """Whether the graph must be captured again; raises where a new capture would be wrong."""
         objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
         replaced = not self.agent_objects or any(a is not b for a, b in zip(objects, self.agent_objects))
-        params = self.parameters(agent) if replaced else self.params  # listing them is slow: once per agent
+        # listing them is slow: once per agent
+        params = self.parameters(agent) if replaced else self.params
         signature = self.signature(inputs, params)
         # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
         if self.seen is not None and signature[1] != self.seen[1]:
             old, new = (", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1]))
             raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {old} and is now called on {new}; "
                                "a CUDA graph replays on one device")
-        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture records what eager now runs.
-        # A replaced `.grad` (zero_grad's None): a replay would write the old one, which the optimiser no longer reads.
+        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
+        # records what eager now runs. A replaced `.grad` (zero_grad's None): a
+        # replay would write the old one, which the optimiser no longer reads.
         stale = replaced or fixed != self.fixed or signature != self.seen or any(p.grad is not g for p, g in self.grads)
         if stale:  # held here, the replaced objects keep their ids: no false match
             self.agent_objects, self.fixed, self.params, self.seen, self.grads = objects, fixed, params, signature, []
@@ -1018,7 +1041,8 @@ class CudaGraph:
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 self.outputs = self.step(agent, *self.inputs)
-            # Only the `.grad` tensors the capture created or added to: another step's may change freely.
+            # Only the `.grad` tensors the capture created
+            # or added to: another step's may change freely.
             self.grads = [(p, p.grad) for p, g, v in before if p.grad is not g or (g is not None and g._version != v)]
             self.graph = graph  # only once captured: a failed capture is never replayed
         elif self.tensors(inputs):
@@ -1034,7 +1058,8 @@ RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_enti
 
 
 def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    """The run folder, and the saved state when `--run-name`
+    names a folder holding a `state.pt` (else None)."""
     if args.run_name is None:
         return make_run_folder(args.env_id, args.exp_name, args.seed), None
     path = f"runs/{args.run_name}/state.pt"
@@ -1045,13 +1070,15 @@ def open_run(args) -> tuple:
         os.makedirs(f"runs/{args.run_name}")
         return args.run_name, None
     try:
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+        # our own file: not only tensors
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
     if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
         raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
                          "it with that version (git checkout 88b95d9)")
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    # a flag added since: its default
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
     changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
                if name not in RESUMABLE_FLAGS and saved[name] != value]
     if changed:
@@ -1061,7 +1088,8 @@ def open_run(args) -> tuple:
 
 
 def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    """Write a temporary file, flush it to disk, then rename
+    it: a kill during the write leaves the last state."""
     with open(f"{path}.tmp", "wb") as f:
         torch.save(state, f)
         f.flush()
@@ -1069,15 +1097,16 @@ def save_atomically(state: dict, path: str):
     os.replace(f"{path}.tmp", path)
 
 
-PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of these types are saved as they are
+# a dataclass's fields of these types are saved as they are
+PLAIN = (int, float, list, dict, deque, type(None))
 
 
 def state_of(obj):
     """What `state.pt` keeps of an object.
 
-    That is a tensor itself, a sparse optimizer's inner state with its masks and counters, `obj.state_dict()`, a
-    dataclass field by field, a buffer's stored rows (`stored_rows`), or for another plain object (episode store,
-    statistics) its tensors and numbers."""
+    That is a tensor itself, a sparse optimizer's inner state with its masks and counters,
+    `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
+    or for another plain object (episode store, statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
     if hasattr(obj, "masks"):  # the weights are saved with their networks
@@ -1094,10 +1123,11 @@ def state_of(obj):
 
 
 def stored_rows(buffer) -> dict:
-    """A buffer's numbers and the first `size` rows of its tensors: a slice alone would save the whole preallocation.
+    """A buffer's numbers and the first `size` rows of its
+    tensors: a slice alone would save the whole preallocation.
 
-    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`, that is at episode ends and in the
-    newest row. The comparison is bitwise."""
+    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`,
+    that is at episode ends and in the newest row. The comparison is bitwise."""
     n = buffer.size
     state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
     state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
@@ -1113,7 +1143,8 @@ def load_stored_rows_(buffer, state: dict):
     """Restore what `stored_rows` saved, in place."""
     for name, rows in state["rows"].items():
         full = getattr(buffer, name)
-        if full.shape[1:] != rows.shape[1:]:  # a buffer that allocates its rows at the first add (SURF's segments)
+        # a buffer that allocates its rows at the first add (SURF's segments)
+        if full.shape[1:] != rows.shape[1:]:
             full = full.new_zeros((len(full), *rows.shape[1:]))
             setattr(buffer, name, full)
         full[: len(rows)] = rows
@@ -1138,7 +1169,8 @@ def load_state_(obj, state):
         vars(obj).update(state["counters"])
     elif hasattr(obj, "load_state_dict"):
         obj.load_state_dict(state)
-    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
+    # what `state_of` saved as it was is set, the rest restored in place
+    elif dataclasses.is_dataclass(obj):
         for name, value in state.items():
             if isinstance(getattr(obj, name), PLAIN):
                 setattr(obj, name, value)
@@ -1155,7 +1187,8 @@ def load_state_(obj, state):
 
 
 def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    """The global generators: python's, numpy's, torch's
+    (and the GPU's on one); the envs keep their own."""
     cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
     return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
 
@@ -1170,8 +1203,8 @@ def set_rng_states(states: dict, device: torch.device):
 
 
 def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
-    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the points the interrupted one
-    logged after its state (TensorBoard's purge_step)."""
+    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the
+    points the interrupted one logged after its state (TensorBoard's purge_step)."""
     if args.track:
         import wandb
 
@@ -1185,8 +1218,8 @@ def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
 
 
 def catch_stop_signals() -> list:
-    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the returned list; the loop then
-    saves the state at the end of its step and exits."""
+    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the
+    returned list; the loop then saves the state at the end of its step and exits."""
     stop_signals = []
     for signum in (signal.SIGTERM, signal.SIGUSR2):
         signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
@@ -1194,11 +1227,13 @@ def catch_stop_signals() -> list:
 
 
 class Stopped(Exception):
-    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+    """SIGTERM or SIGUSR2: the state is saved; the run exits
+    with exit code 1 and one line saying how to resume."""
 
 
 class NonFinite(Exception):
-    """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
+    """A non-finite value: the run writes its checkpoint
+    and stops with exit code 1 and one line naming it."""
 
 
 def check_finite(values: dict, step: int):
@@ -1209,10 +1244,11 @@ def check_finite(values: dict, step: int):
 
 def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
                device: torch.device, envs: list, writer: SummaryWriter):
-    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
-    objects, the generators, the envs' generators and the observation to act on."""
+    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
+    the `saved` objects, the generators, the envs' generators and the observation to act on."""
     started = time.time()
-    writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+    # the points up to this step are on disk before a state that a resume purges back to
+    writer.flush()
     save_atomically({
         "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
         "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
@@ -1223,8 +1259,9 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
 
 
 def state_due(global_step: int, args, last_state: float) -> bool:
-    """Whether `state.pt` is written after this step: `state_minutes` after the last one (`last_state`, from
-    `time.monotonic`), or every `checkpoint_freq` steps if set; at the last step only with `keep_state`."""
+    """Whether `state.pt` is written after this step: `state_minutes` after the
+    last one (`last_state`, from `time.monotonic`), or every `checkpoint_freq`
+    steps if set; at the last step only with `keep_state`."""
     if global_step + 1 == args.total_timesteps:
         return args.keep_state
     if args.checkpoint_freq is not None:
@@ -1234,8 +1271,9 @@ def state_due(global_step: int, args, last_state: float) -> bool:
 
 def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
                 progress: Progress, state_path: str) -> tuple:
-    """Start, or continue from the saved state: restore the `saved` objects, replay the running episode on `envs[0]`
-    to where the saved run was, then restore the generators. Returns (observation, first step, seconds trained)."""
+    """Start, or continue from the saved state: restore the `saved` objects, replay the
+    running episode on `envs[0]` to where the saved run was, then restore the generators.
+    Returns (observation, first step, seconds trained)."""
     loop = saved["loop"]
     if resume is not None:
         for name, obj in saved.items():
@@ -1251,7 +1289,8 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
     start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
-    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+    # the purge hid the step's evaluation
+    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
     progress.eval_return = loop.last_eval.get("eval/episodic_return")
@@ -1535,9 +1574,9 @@ def input_layers(agent) -> dict:
 def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
     """The share of an input layer's absolute weight on relevant columns, and its chance level.
 
-    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features and the actions,
-    as in `relevant_active_frac`. Chance is the relevant columns' share of all columns. A zero weight adds nothing,
-    so a sparse layer counts its active weights only."""
+    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features
+    and the actions, as in `relevant_active_frac`. Chance is the relevant columns' share of all
+    columns. A zero weight adds nothing, so a sparse layer counts its active weights only."""
     column = torch.arange(weight.shape[-1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
     magnitude = weight.abs().sum(0)
@@ -1545,9 +1584,11 @@ def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) 
 
 
 def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
-    """The tags `features/{net}/relevant_weight_frac` and `features/{net}/chance` of each layer, as floats.
+    """The tags `features/{net}/relevant_weight_frac` and
+    `features/{net}/chance` of each layer, as floats.
 
-    It reads the weights only, so a run's numbers are the same with or without it. One host sync per call."""
+    It reads the weights only, so a run's numbers are the same with or without it.
+    One host sync per call."""
     values = {}
     for name, weight in layers.items():
         frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
@@ -1572,7 +1613,8 @@ if __name__ == "__main__":
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
     checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
+    # no overwrite
+    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
@@ -1593,14 +1635,17 @@ if __name__ == "__main__":
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
         critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
                                                                               target_update))
-    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
-        torch.cuda.set_stream(torch.cuda.Stream())  # stream of its own: a capture cannot involve the legacy default one
+    # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
+    if args.cuda_graph:
+        # stream of its own: a capture cannot involve the legacy default one
+        torch.cuda.set_stream(torch.cuda.Stream())
         critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
                                                                            target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
-        torch.set_num_threads(args.threads or 1)  # several runs per machine: default threads oversubscribe the cores
+        # several runs per machine: default threads oversubscribe the cores
+        torch.set_num_threads(args.threads or 1)
 
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
@@ -1661,7 +1706,8 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
-            check_finite({"action": float(env_action.sum())}, global_step)  # on the host already: no extra sync
+            # on the host already: no extra sync
+            check_finite({"action": float(env_action.sum())}, global_step)
             physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
@@ -1755,5 +1801,7 @@ if __name__ == "__main__":
     writer.close()
     if external:
         external.tell("finished", args.total_timesteps, loop.total_feedback, loop.labeled_feedback)
-    if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
-        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
+    # last: a kill before this leaves a state to resume
+    if not args.keep_state and os.path.exists(state_path):
+        # the run is complete: what it leaves is the event file and the checkpoint
+        os.remove(state_path)
