@@ -412,7 +412,7 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
     return returns
 
 
-# ALGO LOGIC: the storage PEBBLE learns from: replay buffer (relabelled in place), episodes, labelled pairs
+# ALGO LOGIC: PEBBLE's storage: replay buffer (relabelled in place), episodes, labelled pairs
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
     """Stored rows as the networks read them: with
     `--noise-resample`, a copy with fresh noise columns."""
@@ -429,7 +429,7 @@ class Batch(NamedTuple):
 
 
 class ReplayBuffer:
-    """Preallocated circular buffer of transitions; rewards are the reward ensemble's, relabelled in place."""
+    """Preallocated circular transition buffer. Rewards are the ensemble's, relabelled in place."""
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
         self.obs = torch.zeros((capacity, obs_dim), device=device)
@@ -455,7 +455,7 @@ class ReplayBuffer:
 
     @torch.no_grad()
     def relabel(self, reward_fn, chunk: int):
-        """Rewrite every stored reward (the whole buffer, also after it wrapped) with `reward_fn([obs, action])`."""
+        """Rewrite every stored reward with `reward_fn([obs, action])`, even after a wrap."""
         for start in range(0, self.size, chunk):
             rows = slice(start, min(start + chunk, self.size))
             inputs = torch.cat([read_noisy(self.obs[rows], self.noise), self.actions[rows]], 1)
@@ -463,10 +463,10 @@ class ReplayBuffer:
 
 
 class EpisodeStore:
-    """The last `max_episodes` complete episodes as `[obs, action]` rows and true rewards, for cutting segments."""
+    """Last `max_episodes` whole episodes to cut segments from: [obs, action] rows, true rewards."""
 
     def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int, device: torch.device):
-        self.slots = max_episodes + 1  # one slot is being written while the others hold complete episodes
+        self.slots = max_episodes + 1  # one slot is being written, the others hold whole episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
         # labelling by hand only: the host-side MuJoCo states, to draw a queried segment again
@@ -475,7 +475,7 @@ class EpisodeStore:
         self.n_complete, self.t = 0, 0
 
     def add(self, obs, action, true_reward: float, physics: Optional[np.ndarray] = None):
-        """Append one step; an episode is complete after `episode_length` steps (DMC episodes never end early)."""
+        """Append one step. Episodes last `episode_length` steps: DMC episodes never end early."""
         slot = self.n_complete % self.slots
         self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
         self.true_rewards[slot, self.t] = true_reward
@@ -488,8 +488,8 @@ class EpisodeStore:
             self.n_complete, self.t = self.n_complete + 1, 0
 
     def sample_segments(self, n_pairs: int, length: int, with_physics: bool = False):
-        """Pairs of segments: episode and start drawn independently per side. Returns (n, 2, H, D) and (n, 2, H), and
-        with `with_physics` their physics states (n, 2, H, P) in numpy."""
+        """Segment pairs; each side draws its episode and start independently. Returns (n, 2, H, D),
+        (n, 2, H) and, with `with_physics`, their physics states (n, 2, H, P) in numpy."""
         device = self.inputs.device
         n_available = min(self.n_complete, self.max_episodes)
         episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
@@ -522,12 +522,12 @@ class PreferenceBuffer:
 
 # ALGO LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
 class RewardEnsemble(nn.Module):
-    """`ensemble_size` reward MLPs on [obs, action] in one batched pass: LeakyReLU hidden layers, tanh output."""
+    """`ensemble_size` reward MLPs on [obs, action] in one pass: LeakyReLU hidden, tanh output."""
 
     def __init__(self, input_dim: int, hidden_dim: int, n_hidden: int, ensemble_size: int):
         super().__init__()
         dims = [input_dim] + [hidden_dim] * n_hidden + [1]
-        self.weights = nn.ParameterList()  # weights[0] is the input layer, (E, hidden, input) like nn.Linear
+        self.weights = nn.ParameterList()  # [0]: the input layer, (E, hidden, input) like nn.Linear
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(dims[:-1], dims[1:]):
             bound = 1 / math.sqrt(fan_in)  # nn.Linear's default initialisation, per member
@@ -536,7 +536,7 @@ class RewardEnsemble(nn.Module):
         self.ensemble_size = ensemble_size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Per-member rewards (E, N) of rows x: (N, D) shared by all members, or (E, N, D) one set per member."""
+        """Rewards (E, N) per member of rows x: (N, D) shared by all, or (E, N, D) one set each."""
         if x.dim() == 2:
             x = x.expand(self.ensemble_size, *x.shape)
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
@@ -624,7 +624,7 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unla
         optimizer.step()
         pairs += labels.shape[1]
         if iteration >= iterations - math.ceil(n / batch_size):  # the last pass over the labels, as PEBBLE's last epoch
-            is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5] but have no right answer
+            is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5]; no answer is right
             correct += (((returns[..., 1] > returns[..., 0]) == (labels > 0.5)) & is_strict).sum()
             strict += is_strict.sum()
             loss_sum += member_losses.detach().sum() * labels.shape[1]
@@ -696,8 +696,8 @@ class RunningMeanStd:
 
 @torch.no_grad()
 def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 16384) -> torch.Tensor:
-    """L2 distance from each sample to its k-th nearest neighbour among `points`, the sample itself excluded
-    (samples are rows of `points`, so the nearest one, at distance 0, is skipped)."""
+    """L2 distance from each sample to its k-th nearest neighbour among `points`, itself excluded.
+    Samples are rows of `points`, so the nearest one, at distance 0, is skipped."""
     nearest = None
     for part in points.split(chunk):
         d = torch.cdist(samples, part) if nearest is None else torch.cat([nearest, torch.cdist(samples, part)], 1)
@@ -706,7 +706,7 @@ def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int
 
 
 def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, stats: RunningMeanStd) -> torch.Tensor:
-    """PEBBLE's intrinsic reward for rows `indices` of the buffer `points`: k-NN distance / running std."""
+    """PEBBLE's intrinsic reward for rows `indices` of `points`: k-NN distance / running std."""
     distances = knn_distance(points[indices], points, k)
     stats.update(distances)
     return distances / stats.std
@@ -901,7 +901,7 @@ class Loop:
     # reset), and the episode's actions so far, to replay the episode on a resume
     episode_start: Optional[dict] = None
     episode_actions: list = field(default_factory=list)
-    recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
+    recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # the teacher's margin
     # the latest losses, on the device: read every `log_freq` steps
     losses: dict = field(default_factory=dict)
     # the last evaluation's tags: logged again after a resume's purge
@@ -949,7 +949,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
                    reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
                    queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
                    external: Optional["ExternalTeacher"], unlabeled: PreferenceBuffer) -> float:
-    """Ask the teacher one round of queries, train the reward ensemble on all labels, relabel the whole buffer.
+    """Ask a round of queries, train the reward ensemble on all labels, relabel the whole buffer.
     Returns the seconds spent waiting for an external teacher (not training time)."""
     noise, obs_dim = rb.noise, rb.obs.shape[1]
     n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
@@ -1404,7 +1404,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
 
 # the queries and labels of a run (`preferences/`) and the external teacher (docs/labelling.md)
 def write_npz(path: str, **arrays):
-    """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
+    """`np.savez` to a temp file, then rename: no reader sees half a file; a kill keeps the last."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(f"{path}.tmp", "wb") as f:
         np.savez(f, **arrays)
@@ -1412,10 +1412,10 @@ def write_npz(path: str, **arrays):
 
 
 class QueryLog:
-    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
-    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step; per round, the
-    SHA-256 of the labels file its labels were read from (`--teacher external`; else empty). The run's folder
-    `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
+    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included),
+    true rewards and physics states, the label (NaN: skipped), the round (-1: `--preferences`), the
+    env step. Per round, the SHA-256 of its labels file (`--teacher external`; else empty). The
+    run's folder `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
 
     def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
@@ -1433,13 +1433,13 @@ class QueryLog:
                    rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
-        if round_index >= 0:  # padded: a state written before the SHA-256 were kept resumes with none for its rounds
+        if round_index >= 0:  # padded: older states (no SHA-256 kept) resume with none per round
             self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
                                                 [label_sha256]]).astype("<U64")
 
     def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
-        """Write one round's queries to `{folder}/{round}.npz` (those from `--preferences`: `seeded.npz`).
-        Each round gets a file of its own, so a round writes its own queries only, not the whole log again."""
+        """Write one round's queries to `{folder}/{round}.npz` (from `--preferences`: `seeded.npz`).
+        Each round has its own file: it writes its own queries, not the whole log again."""
         rows = self.rounds == round_index
         inputs = self.inputs[rows]
         sha256 = self.label_sha256[round_index:round_index + 1] if round_index >= 0 else self.label_sha256[:0]
@@ -1450,8 +1450,8 @@ class QueryLog:
 
 
 def read_preferences(path: str) -> dict:
-    """A run's query log as one set of arrays: its `preferences/` folder (seeded first, then the rounds in order) or
-    a single `.npz` file."""
+    """A run's query log as one set of arrays, from its `preferences/` folder (seeded first, then
+    the rounds in order) or a single `.npz` file."""
     if os.path.isdir(path):
         rounds = sorted(int(name[:-4]) for name in os.listdir(path) if name.endswith(".npz") and name[:-4].isdigit())
         seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
@@ -1469,8 +1469,8 @@ def read_preferences(path: str) -> dict:
 
 
 def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
-    """The arrays of an earlier run's query log, its `preferences/` folder or one `.npz` of it (`--preferences`);
-    a ValueError with one line if they do not fit this run."""
+    """The arrays of an earlier run's query log (`--preferences`): its `preferences/` folder or one
+    `.npz` of it. A ValueError with one line if they do not fit this run."""
     if not os.path.exists(path):
         raise ValueError(f"--preferences: no such file or folder: {path}")
     try:
@@ -1488,15 +1488,15 @@ def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
 
 
 class ExternalTeacher:
-    """`--teacher external` (docs/labelling.md): a round's queries go to `queries/{round}.npz`, its labels
-    come from `labels/{round}.json`, a JSON list with, per query, 1 (the second segment is preferred), 0 (the first),
-    0.5 (equal) or "skip". The run reads a round's file once it is valid and records its SHA-256; a resume checks
-    that the files it trained on are unchanged (`check_labels_unchanged`). `teacher.json` tells the labelling page
-    what the run is doing: waiting for a round (rewritten every poll), training (its step rewritten every
-    `step_seconds`), finished or stopped."""
+    """`--teacher external` (docs/labelling.md): queries go to `queries/{round}.npz`, labels come
+    from `labels/{round}.json`: a JSON list with, per query, 1 (second segment preferred), 0 (the
+    first), 0.5 (equal) or "skip". The run reads a round's file once it is valid and records its
+    SHA-256. A resume checks that the files it trained on are unchanged (`check_labels_unchanged`).
+    `teacher.json` tells the labelling page what the run does: waiting for a round (rewritten every
+    poll), training (step rewritten every `step_seconds`), finished or stopped."""
 
-    step_seconds = 2.0  # while training, the step in teacher.json is rewritten this often at most (the page polls
-                        # every 2 s)
+    step_seconds = 2.0  # while training, teacher.json's step is rewritten at most this often
+                        # (the page polls every 2 s)
 
     def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
         self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
@@ -1505,8 +1505,8 @@ class ExternalTeacher:
         self.status, self.told = None, -math.inf  # the last status written; when the step was (training seconds)
 
     def nap(self):
-        """Sleep `poll_seconds`, or until a stop signal: Python resumes a sleep after the signal's handler, so the
-        wait sleeps in short naps to end at once."""
+        """Sleep `poll_seconds`, or until a stop signal. Python resumes a sleep after the signal's
+        handler, so the wait sleeps in short naps to end at once."""
         until = time.monotonic() + self.poll_seconds
         while not self.stop_signals and time.monotonic() < until:
             time.sleep(0.05)
@@ -1517,8 +1517,8 @@ class ExternalTeacher:
                         step=step, message=message))
 
     def training(self, step: int, seconds: float):
-        """Called every step (`Progress.update`): while the run trains after a round, `teacher.json` says the current
-        step, rewritten every `step_seconds` of training (`seconds`) at most."""
+        """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
+        says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
         if self.status is None or self.status["phase"] != "training" or seconds - self.told < self.step_seconds:
             return
         self.told = seconds
@@ -1533,10 +1533,10 @@ class ExternalTeacher:
 
     def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
             physics: np.ndarray, step: int, asked: int, labelled: int) -> tuple:
-        """Write the round's queries, then wait for a valid labels file; a malformed one gets one line (and the
-        page's notice) and the wait goes on. Returns (the answered pairs' mask, labels with 0 where skipped, both on
-        the segments' device; the file's SHA-256; seconds spent waiting). A stop signal raises `Stopped`: the state
-        written before the round resumes into it."""
+        """Write the round's queries, then wait for a valid labels file. A malformed one gets one
+        line (and the page's notice); the wait goes on. Returns the answered pairs' mask and labels
+        (0 where skipped), both on the segments' device, the file's SHA-256 and seconds waited. A
+        stop signal raises `Stopped`: the state written before the round resumes into it."""
         rows = segments.cpu().numpy()
         write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim],
                   actions=rows[..., obs_dim:], physics=physics, true_rewards=true_rewards.cpu().numpy())
@@ -1570,8 +1570,8 @@ class ExternalTeacher:
 
 
 def check_labels_unchanged(folder: str, queries: dict):
-    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds what it read,
-    or a ValueError says which."""
+    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds
+    what it read, or a ValueError says which."""
     for round_index, recorded in enumerate(queries.get("label_sha256", [])):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
@@ -1579,16 +1579,16 @@ def check_labels_unchanged(folder: str, queries: dict):
                              f"back as it was (the run's preferences/{round_index}.npz holds its labels)")
 
 
-LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # exactly these spellings: not 1.0, 1e0, -0 or 0.50
 
 
 def labels_problem(content: bytes, n: int) -> Optional[str]:
-    """Why a labels file's bytes are not n valid answers (a JSON list, each exactly 0, 1, 0.5 or "skip"), or None.
-    The labelling page checks by the same rule (label_app.parse_answers)."""
+    """Why a labels file's bytes are not n valid answers, or None. Valid: a JSON list, each exactly
+    0, 1, 0.5 or "skip". The labelling page checks by the same rule (label_app.parse_answers)."""
     number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
         answers = json.loads(content, parse_int=number, parse_float=number, parse_constant=number)
-    except (ValueError, RecursionError) as e:  # a UnicodeDecodeError and a JSONDecodeError are ValueErrors
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
         return f"not JSON ({type(e).__name__})"
     # true and false are bools, which Python counts as 1 and 0
     if not isinstance(answers, list) or len(answers) != n or any(
@@ -1608,8 +1608,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
                 segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray, step: int) -> tuple:
     """A round's labels: (answered mask, labels, the labels file's SHA-256, seconds waited).
 
-    A person or a program answers through files where there is an external teacher (labelling by hand); else
-    B-Pref's simulated teacher answers from the segments' true rewards."""
+    With an external teacher, a person or a program answers through files (labelling by hand).
+    Else B-Pref's simulated teacher answers from the segments' true rewards."""
     if external and len(segments):
         return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics, step,
                             loop.total_feedback, loop.labeled_feedback)
@@ -1623,8 +1623,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
 
 def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, segments: torch.Tensor,
                 true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
-    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz` (labels: NaN where
-    skipped)."""
+    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
+    Labels are NaN where skipped."""
     round_index = queries.next_round
     queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), round_index, step,
                 sha256)
@@ -1633,7 +1633,7 @@ def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, seg
 
 def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
               episodes, diagnostic_positions: torch.Tensor):
-    """The tags of a feedback round: the feedback counts, the reward optimiser's steps and the reward diagnostics."""
+    """The tags of a feedback round: feedback counts, reward optimiser steps, reward diagnostics."""
     writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
     writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
     writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
@@ -1642,7 +1642,7 @@ def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model:
 
 
 def optimizer_steps(optimizer) -> int:
-    """Optimiser steps taken so far, for `pbrl/reward_steps`: Adam's own count (through a wrapper's `optimizer`)."""
+    """Optimiser steps so far (`pbrl/reward_steps`): Adam's count, via a wrapper's `optimizer`."""
     states = getattr(optimizer, "optimizer", optimizer).state.values()
     return max((int(state["step"]) for state in states), default=0)
 
@@ -1650,10 +1650,10 @@ def optimizer_steps(optimizer) -> int:
 @torch.no_grad()
 def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
                            positions: torch.Tensor, n_pairs: int, segment_size: int):
-    """How well the ensemble mean tracks the true reward, for the logs only: Pearson correlation on the stored
-    transitions at fixed relative `positions` of the buffer, and the preference accuracy against the oracle teacher
-    on `n_pairs` fresh segment pairs (never added to the dataset, never counted in the budget; ties left out). The
-    pairs come from a generator of their own: fresh every round, the same in a rerun, the training's draws unchanged."""
+    """How well the ensemble mean tracks the true reward (logs only): Pearson correlation on stored
+    transitions at fixed relative buffer `positions`; preference accuracy against the oracle on
+    `n_pairs` fresh segment pairs, never in the dataset or budget, ties left out. A generator of
+    their own makes the pairs fresh each round, the same in a rerun, training's draws unchanged."""
     device, noise = rb.obs.device, rb.noise
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed + global_step)
