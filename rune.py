@@ -1341,7 +1341,7 @@ class ExternalTeacher:
             if self.stop_signals:
                 import gc
 
-                gc.freeze()  # the run ends: its exit need not collect torch's objects and the run's (a second or more)
+                gc.freeze()  # run ends; exit skips collecting torch's and the run's objects (1 s+)
                 raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
                               f"round is saved: run the same command with --run-name {self.run['run']} to resume")
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
@@ -1558,11 +1558,11 @@ if __name__ == "__main__":
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
     queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences/
-    # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
+    # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
     loop = Loop()
-    if preferences:  # an earlier run's labels: the first pairs of the dataset, counted in the budget
+    if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
         inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
         queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
         queries.save_round(f"{run_folder}/preferences", args.env_id, obs_dim, -1)
@@ -1603,7 +1603,7 @@ if __name__ == "__main__":
             env_action = action.cpu().numpy()
             # on the host already: no extra sync
             check_finite({"action": float(env_action.sum())}, global_step)
-            physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
+            physics = env.physics_state()  # of `obs`, to render the step again if it is queried
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
             next_obs = torch.as_tensor(next_obs, device=device)
@@ -1625,7 +1625,7 @@ if __name__ == "__main__":
             # ALGO LOGIC: training.
             if global_step >= args.learning_starts:
                 beta = rune_beta(global_step, args.rune_beta_init, args.rune_beta_decay)  # RUNE, after pre-training only
-                if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
+                if global_step < pebble_start:  # unsupervised pre-training, state-entropy reward
                     data = rb.sample(args.batch_size)
                     points = read_noisy(rb.obs[: rb.size], noise)
                     intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
