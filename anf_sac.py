@@ -155,7 +155,7 @@ class Args:
     agent_sparsity: float = 0.8
     """fraction of the actor's and critics' input-layer weights that are zero"""
     agent_drop_fraction: float = 0.05
-    """fraction of an actor/critic input layer's active weights dropped and regrown per topology update"""
+    """share of actor/critic input-layer active weights dropped and regrown per topology update"""
     agent_topology_period: int = 1000
     """SAC optimiser steps between topology updates of actor and critics"""
 
@@ -312,7 +312,7 @@ class ReplayBuffer:
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
 def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> torch.Tensor:
-    """0/1 mask with N - floor(sparsity * N) active positions per matrix (last two dims), uniform over the matrix."""
+    """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
     mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
@@ -329,9 +329,9 @@ def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
 @torch.no_grad()
 def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
                  moments: list) -> None:
-    """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|, grow as many where the dense
-    gradient is largest among positions not kept (a just-dropped one may regrow); grown weights and the Adam
-    `moments` of dropped and grown positions are set to 0. The number of active weights never changes."""
+    """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|. Grow as many
+    where the dense gradient is largest among positions not kept (a just-dropped one may regrow).
+    Grown weights and dropped or grown positions' Adam `moments` are zeroed; counts never change."""
     size = weight.shape[-2] * weight.shape[-1]
     w, m, g = weight.view(-1, size), mask.view(-1, size), dense_grad.view(-1, size)
     n_drop = math.floor(drop_fraction * int(m[0].sum()))
@@ -349,9 +349,9 @@ def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Ten
 
 
 class SparseOptimizer:
-    """Wraps an optimizer whose parameters include sparse input layers (`layers`: name -> weight). Each step masks
-    the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay exactly 0), re-applies the masks,
-    and every `period` steps runs a RigL update with that step's dense gradient. Sparsity 0 means dense."""
+    """Wraps an optimizer over sparse input layers (`layers`: name -> weight); sparsity 0 is dense.
+    Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
+    exactly 0) and re-applies them. Every `period` steps: RigL with that step's dense gradient."""
 
     def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
@@ -384,16 +384,16 @@ class SparseOptimizer:
                          [state["exp_avg"], state["exp_avg_sq"]])
 
     def named_matrices(self, tensors: dict):
-        """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
+        """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
             yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
 def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
-    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero weights per relevant
-    column (real features and actions) and per noise column, and the share of non-zero weights on relevant columns
-    (chance level: relevant columns / all columns)."""
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero
+    weights per relevant column (real features, actions) and per noise column; share of non-zero
+    weights on relevant columns (chance: relevant / all columns)."""
     degree = (weight != 0).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)

@@ -36,13 +36,13 @@ not normalised. beta_t decays from step 0, not from the first feedback round.
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 
-This file is R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
-Sparsity" (AAMAS 2025). It is its base script plus the R2N patch, shown by `diff`, which also turns surf.py and
-rune.py into r2n_surf.py and r2n_rune.py. Each input layer (reward members, actor, both critics) keeps 20% of its
-weights. Periodically, RigL drops the active weights of smallest magnitude and grows as many where the dense
-gradient is largest. Reward members: drop 0.2 every 100 reward optimiser steps, over the whole run. Actor and
-critics: drop 0.05 every 1000 SAC steps; the reset critic gets a fresh mask. Masked weights, their gradients and
-their Adam moments stay 0; grown weights start at 0. The target critics are dense Polyak copies.
+R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
+Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
+and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%
+of their weights. Periodically, RigL drops the smallest active weights and regrows as many where the
+dense gradient is largest. Reward members drop 0.2 per 100 reward optimiser steps (whole run); actor
+and critics 0.05 every 1000 SAC steps. The reset critic gets a fresh mask. Masked weights, their
+gradients and Adam moments stay 0; grown ones start at 0. Target critics: dense Polyak copies.
 """
 import dataclasses
 import hashlib
@@ -176,9 +176,9 @@ class Args:
 
     # R2N arguments: dynamic sparse training (RigL) of the input layers
     sparse_reward: bool = True
-    """RigL on each reward model's input layer (off: the paper's "actor/critic only" ablation, dense reward models)"""
+    """RigL on reward-model input layers (off: dense, the paper's "actor/critic only" ablation)"""
     sparse_agent: bool = True
-    """RigL on the input layers of actor and critics (off: the paper's "reward model only" ablation, dense agent)"""
+    """RigL on actor/critic input layers (off: dense, the paper's "reward model only" ablation)"""
     reward_sparsity: float = 0.8
     """fraction of each reward model's input-layer weights that are zero"""
     reward_drop_fraction: float = 0.2
@@ -188,7 +188,7 @@ class Args:
     agent_sparsity: float = 0.8
     """fraction of the actor's and critics' input-layer weights that are zero"""
     agent_drop_fraction: float = 0.05
-    """fraction of an actor/critic input layer's active weights dropped and regrown per topology update"""
+    """share of actor/critic input-layer active weights dropped and regrown per topology update"""
     agent_topology_period: int = 1000
     """SAC optimiser steps between topology updates of actor and critics"""
 
@@ -654,7 +654,7 @@ def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, st
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, RigL topology updates, connectivity
 def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> torch.Tensor:
-    """0/1 mask with N - floor(sparsity * N) active positions per matrix (last two dims), uniform over the matrix."""
+    """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
     mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
@@ -671,9 +671,9 @@ def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
 @torch.no_grad()
 def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
                  moments: list) -> None:
-    """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|, grow as many where the dense
-    gradient is largest among positions not kept (a just-dropped one may regrow); grown weights and the Adam
-    `moments` of dropped and grown positions are set to 0. The number of active weights never changes."""
+    """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|. Grow as many
+    where the dense gradient is largest among positions not kept (a just-dropped one may regrow).
+    Grown weights and dropped or grown positions' Adam `moments` are zeroed; counts never change."""
     size = weight.shape[-2] * weight.shape[-1]
     w, m, g = weight.view(-1, size), mask.view(-1, size), dense_grad.view(-1, size)
     n_drop = math.floor(drop_fraction * int(m[0].sum()))
@@ -691,9 +691,9 @@ def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Ten
 
 
 class SparseOptimizer:
-    """Wraps an optimizer whose parameters include sparse input layers (`layers`: name -> weight). Each step masks
-    the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay exactly 0), re-applies the masks,
-    and every `period` steps runs a RigL update with that step's dense gradient. Sparsity 0 means dense."""
+    """Wraps an optimizer over sparse input layers (`layers`: name -> weight); sparsity 0 is dense.
+    Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
+    exactly 0) and re-applies them. Every `period` steps: RigL with that step's dense gradient."""
 
     def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
@@ -726,16 +726,16 @@ class SparseOptimizer:
                          [state["exp_avg"], state["exp_avg_sq"]])
 
     def named_matrices(self, tensors: dict):
-        """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
+        """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
             yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
 def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
-    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero weights per relevant
-    column (real features and actions) and per noise column, and the share of non-zero weights on relevant columns
-    (chance level: relevant columns / all columns)."""
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero
+    weights per relevant column (real features, actions) and per noise column; share of non-zero
+    weights on relevant columns (chance: relevant / all columns)."""
     degree = (weight != 0).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
@@ -918,7 +918,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
 
 
 def sparse_optimizers(saved: dict) -> tuple:
-    """The sparse optimisers among a run's `saved` objects: the actor's, the critics', the reward members'."""
+    """The sparse optimisers among a run's `saved` objects: actor's, critics', reward members'."""
     return saved["agent"].actor_optimizer, saved["agent"].q_optimizer, saved["reward_optimizer"]
 
 

@@ -28,12 +28,12 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 This file is Static-PEBBLE, the R2N paper's static sparse training baseline: r2n_pebble.py whose random masks
 never change (no topology update), as `diff r2n_pebble.py static_pebble.py` shows. What it changes:
 R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
-Sparsity" (AAMAS 2025). It is its base script plus the R2N patch, shown by `diff`, which also turns surf.py and
-rune.py into r2n_surf.py and r2n_rune.py. Each input layer (reward members, actor, both critics) keeps 20% of its
-weights. Periodically, RigL drops the active weights of smallest magnitude and grows as many where the dense
-gradient is largest. Reward members: drop 0.2 every 100 reward optimiser steps, over the whole run. Actor and
-critics: drop 0.05 every 1000 SAC steps; the reset critic gets a fresh mask. Masked weights, their gradients and
-their Adam moments stay 0; grown weights start at 0. The target critics are dense Polyak copies.
+Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
+and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%
+of their weights. Periodically, RigL drops the smallest active weights and regrows as many where the
+dense gradient is largest. Reward members drop 0.2 per 100 reward optimiser steps (whole run); actor
+and critics 0.05 every 1000 SAC steps. The reset critic gets a fresh mask. Masked weights, their
+gradients and Adam moments stay 0; grown ones start at 0. Target critics: dense Polyak copies.
 """
 import dataclasses
 import hashlib
@@ -163,9 +163,9 @@ class Args:
 
     # Static arguments: fixed random masks on the input layers
     sparse_reward: bool = True
-    """a fixed mask on each reward model's input layer (off: the paper's "actor/critic only" ablation, dense reward models)"""
+    """fixed reward-model input-layer masks (off: dense, paper's "actor/critic only" ablation)"""
     sparse_agent: bool = True
-    """fixed masks on the input layers of actor and critics (off: the paper's "reward model only" ablation, dense agent)"""
+    """fixed actor/critic input-layer masks (off: dense, paper's "reward model only" ablation)"""
     reward_sparsity: float = 0.8
     """fraction of each reward model's input-layer weights that are zero"""
     agent_sparsity: float = 0.8
@@ -609,7 +609,7 @@ def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, st
 
 # SPARSE LOGIC: input-layer masks, masked Adam steps, connectivity
 def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> torch.Tensor:
-    """0/1 mask with N - floor(sparsity * N) active positions per matrix (last two dims), uniform over the matrix."""
+    """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
     mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
@@ -617,9 +617,9 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
 
 
 class SparseOptimizer:
-    """Wraps an optimizer whose parameters include sparse input layers (`layers`: name -> weight). Each step masks
-    the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay exactly 0), re-applies the masks,
-    which never change (static). Sparsity 0 means dense."""
+    """Wraps an optimizer over sparse input layers (`layers`: name -> weight); sparsity 0 is dense.
+    Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
+    exactly 0) and re-applies them, which never change (static)."""
 
     def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
@@ -643,16 +643,16 @@ class SparseOptimizer:
                 weight.mul_(self.masks[name])
 
     def named_matrices(self, tensors: dict):
-        """(name, matrix) per sparse matrix; a stacked ensemble layer `reward` gives `reward0`, `reward1`, ..."""
+        """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
             yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
 def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
-    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero weights per relevant
-    column (real features and actions) and per noise column, and the share of non-zero weights on relevant columns
-    (chance level: relevant columns / all columns)."""
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean non-zero
+    weights per relevant column (real features, actions) and per noise column; share of non-zero
+    weights on relevant columns (chance: relevant / all columns)."""
     degree = (weight != 0).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
@@ -833,7 +833,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
 
 
 def sparse_optimizers(saved: dict) -> tuple:
-    """The sparse optimisers among a run's `saved` objects: the actor's, the critics', the reward members'."""
+    """The sparse optimisers among a run's `saved` objects: actor's, critics', reward members'."""
     return saved["agent"].actor_optimizer, saved["agent"].q_optimizer, saved["reward_optimizer"]
 
 
