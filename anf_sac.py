@@ -1,22 +1,22 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SAC on the true reward, in an Extremely Noisy Environment: the oracle of the preference-based scripts.
+"""SAC on the true reward in an Extremely Noisy Environment: the oracle of the PbRL scripts.
 
-Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside `pebble.py` (same
-networks, update, flags and defaults, from the R2N paper's appendix; Muslimani et al., AAMAS 2025), but the replay
-buffer stores the environment's reward instead of a learned one. It is `pebble.py` with the preference learning
-deleted, so `diff sac.py pebble.py` shows only PEBBLE: reward ensemble, teacher, queries, preference buffer, episode
-store, state-entropy pre-training, feedback rounds, relabelling and the critic reset. The loop, one iteration per
-env step:
+Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018): exactly the SAC inside
+`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix; Muslimani et al.,
+AAMAS 2025), but the replay buffer stores the env's reward, not a learned one. It is `pebble.py`
+minus preference learning: `diff sac.py pebble.py` shows only PEBBLE (reward ensemble, teacher,
+queries, preference buffer, episode store, state-entropy pre-training, feedback rounds, relabelling,
+critic reset). The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then one SAC update per step on the true reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-Two uses: the upper bound ("SAC with the true reward") for the PbRL curves at the same `--noise`, and, with
-`--noise 0`, the noise-free policy whose deterministic rollouts give the histograms of `--noise-type imitate`
-(`make_histograms.py`). Choices where the paper is silent: those of `pebble.py` that concern SAC (`--noise-resample`
-redraws the noise columns of replay minibatches, as ANF does; the critics bootstrap on `terminated` only);
-`make_critic` stays a function (PEBBLE resets the critic) so that the shared code is byte-identical.
+Two uses: the upper bound ("SAC with the true reward") for PbRL curves at equal `--noise`; with
+`--noise 0`, a noise-free policy whose deterministic rollouts give `--noise-type imitate` its
+histograms (`make_histograms.py`). Choices where the paper is silent, from `pebble.py`: replay
+minibatches' noise is redrawn (`--noise-resample`, like ANF). Critics bootstrap on `terminated`
+only. `make_critic` stays a function (PEBBLE resets critics) for byte-identical shared code.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
