@@ -21,14 +21,14 @@ only. `make_critic` stays a function (PEBBLE resets critics) for byte-identical 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
-# ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent. ANF (Grooten et al., "Automatic Noise
-# Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) with the agent half of the R2N patch
-# (`diff pebble.py r2n_pebble.py`), copied unchanged, its reward half dropped. It keeps 20% of the weights of the
-# input layers of actor, Q1 and Q2 (independent random masks) and every 1000 SAC optimiser steps drops the 5%
-# smallest-magnitude active weights and grows as many where the dense gradient is largest (RigL, as R2N does
-# "following ANF"; ANF's public code regrows at random, like SET), so the agent moves its connections onto the
-# task-relevant features. Masked weights are exactly 0; their gradients and Adam moments are kept at 0; grown weights
-# start at 0 with zero moments. Target critics are dense Polyak copies. `diff sac.py anf_sac.py` is that change.
+# ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent: ANF (Grooten et al.,
+# "Automatic Noise Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) with the agent
+# half of the R2N patch (`diff pebble.py r2n_pebble.py`) unchanged, minus its reward half. Actor, Q1
+# and Q2 keep 20% of their input-layer weights (independent random masks). Every 1000 SAC optimiser
+# steps RigL drops the 5% smallest active weights and grows as many where the dense gradient is
+# largest (as R2N does "following ANF"; ANF's public code regrows at random, like SET). The agent
+# rewires onto task-relevant features. Masked weights, gradients and Adam moments stay 0; grown ones
+# start at 0, moments too. Target critics: dense Polyak copies. `diff sac.py anf_sac.py` shows it.
 import dataclasses
 import importlib.util
 import math
