@@ -25,14 +25,14 @@ transition comes from the current reward ensemble; the next relabel overwrites i
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
-# DROPCONNECT PATCH (DropConnect-PEBBLE): PEBBLE with DropConnect on the reward models' input layers (an R2N paper
-# baseline). DropConnect (Wan et al., ICML 2013), simplified as is common: in every reward-training forward pass each
-# input-layer weight of each member is zeroed with probability `dropconnect_p` (0.2), one fresh Bernoulli(1 - p) mask
-# per member per pass, shared by the minibatch, and the kept weights are scaled by 1/(1 - p) (inverted scaling);
-# biases, hidden and output layers are untouched. Relabelling, the per-step reward and query scoring use the full
-# weights. The training accuracy that stops a round early is measured on the same dropped-out forwards as the loss.
-# Actor and critics are dense. `sparse/reward{e}/*` log the connectivity of the reward input layers like R2N's, a
-# weight with |w| > 1e-3 counting as a connection. `diff pebble.py dropconnect_pebble.py` is that change.
+# DROPCONNECT PATCH (DropConnect-PEBBLE, `diff pebble.py dropconnect_pebble.py`): PEBBLE with
+# DropConnect on the reward models' input layers (an R2N paper baseline). DropConnect (Wan et al.,
+# ICML 2013), simplified as is common: in each reward-training forward pass, every input weight of
+# each member is zeroed w.p. `dropconnect_p` (0.2). Masks: Bernoulli(1 - p), fresh per member and
+# pass, shared by the minibatch; kept weights scale by 1/(1 - p) (inverted scaling). Biases, hidden
+# and output layers are untouched. Relabelling, the per-step reward and query scoring use the full
+# weights. Early stopping's accuracy uses the loss's dropped-out forwards. Actor and critics are
+# dense. `sparse/reward{e}/*` log input-layer connectivity like R2N's (|w| > 1e-3: a connection).
 import dataclasses
 import hashlib
 import importlib.util
@@ -213,9 +213,9 @@ class Args:
     """an earlier run's `preferences/` folder, or one `.npz` of it.
     Its labels seed the reward model's dataset and count in the budget."""
 
-    # DropConnect arguments: random weight masks on the reward models' input layers during reward training
+    # DropConnect arguments: random weight masks on reward input layers during reward training
     dropconnect_p: float = 0.2
-    """probability that an input-layer weight of a reward model is dropped in a training forward pass"""
+    """probability that a reward model's input-layer weight is dropped in a training forward pass"""
 
 
 def validate_args(args: Args) -> None:
@@ -473,12 +473,12 @@ class RewardEnsemble(nn.Module):
         self.ensemble_size = ensemble_size
 
     def forward(self, x: torch.Tensor, dropconnect_p: float = 0.0) -> torch.Tensor:
-        """Per-member rewards (E, N) of rows x: (N, D) shared by all members, or (E, N, D) one set per member.
-        `dropconnect_p` > 0 (reward training only): DropConnect on the input layer, a fresh mask per member and call."""
+        """Rewards (E, N) per member of rows x: (N, D) shared by all, or (E, N, D), one set each.
+        `dropconnect_p` > 0 (training): input-layer DropConnect, a new mask per member and call."""
         if x.dim() == 2:
             x = x.expand(self.ensemble_size, *x.shape)
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            if i == 0 and dropconnect_p > 0:  # each weight kept with probability 1 - p, kept ones scaled by 1 / (1 - p)
+            if i == 0 and dropconnect_p > 0:  # keep each weight w.p. 1 - p, scale kept by 1/(1 - p)
                 weight = F.dropout(weight, dropconnect_p)
             x = torch.baddbmm(bias, x, weight.transpose(1, 2))
             x = F.leaky_relu(x) if i < len(self.weights) - 1 else torch.tanh(x)
@@ -500,8 +500,8 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
 
 def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int, max_epochs: int,
                  stop_accuracy: float, dropconnect_p: float):
-    """One round of reward learning on all labels so far, with DropConnect on the input layers; returns (mean member
-    loss, accuracy, epochs)."""
+    """One round of reward learning on all labels so far, with DropConnect on the input layers.
+    Returns (mean member loss, accuracy, epochs)."""
     n, members = prefs.size, model.ensemble_size
     for epoch in range(1, max_epochs + 1):
         order = torch.rand(members, n, device=prefs.labels.device).argsort(1)  # per-member shuffle
@@ -602,12 +602,12 @@ def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, st
 
 
 
-# SPARSE LOGIC: connectivity of the reward input layers (a weight with |w| > 1e-3 counts as a connection)
+# SPARSE LOGIC: connectivity of the reward input layers (|w| > 1e-3 counts as a connection)
 @torch.no_grad()
 def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
-    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean connections (|w| > 1e-3) per
-    relevant column (real features and actions) and per noise column, and the share of connections on relevant columns
-    (chance level: relevant columns / all columns)."""
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean connections
+    (|w| > 1e-3) per relevant column (real features, actions) and per noise column; share of
+    connections on relevant columns (chance: relevant / all columns)."""
     degree = (weight.abs() > 1e-3).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)

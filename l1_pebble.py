@@ -25,12 +25,12 @@ transition comes from the current reward ensemble; the next relabel overwrites i
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
-# L1 PATCH (L1-PEBBLE): PEBBLE with an L1 penalty on each reward model's input-layer weights (the R2N paper's L1
-# baseline). Each reward member's Bradley-Terry loss gets `l1_lambda * sum|w|` over that member's input-layer weights
-# (biases excluded; lambda 0.01, a sum, not a mean), so the reward models are pushed to drop input features without a
-# mask. Hidden and output layers, actor and critics are not regularised. `pbrl/reward_loss` stays the Bradley-Terry
-# loss alone. `sparse/reward{e}/*` log the connectivity of the reward input layers like R2N's, a weight with |w| >
-# 1e-3 counting as a connection. `diff pebble.py l1_pebble.py` is that change.
+# L1 PATCH (L1-PEBBLE, `diff pebble.py l1_pebble.py`): PEBBLE plus an L1 penalty on reward models'
+# input-layer weights (the R2N paper's L1 baseline). Each member's Bradley-Terry loss gets
+# `l1_lambda * sum|w|` over its input-layer weights (biases excluded; lambda 0.01; a sum, not a
+# mean). It pushes reward models to drop input features without a mask. Hidden and output layers,
+# actor and critics are not regularised. `pbrl/reward_loss` is the Bradley-Terry loss alone.
+# `sparse/reward{e}/*` log reward input-layer connectivity like R2N's (|w| > 1e-3: a connection).
 import dataclasses
 import hashlib
 import importlib.util
@@ -213,7 +213,7 @@ class Args:
 
     # L1 arguments: a sparsity-inducing penalty on the reward models' input layers
     l1_lambda: float = 0.01
-    """lambda of the penalty lambda * sum|w| over each reward model's input-layer weights, added to that model's loss"""
+    """lambda: the L1 penalty lambda * sum|w| on a reward model's input weights joins its loss"""
 
 
 def validate_args(args: Args) -> None:
@@ -500,8 +500,8 @@ def l1_penalty(model: RewardEnsemble, l1_lambda: float) -> torch.Tensor:
 
 def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int, max_epochs: int,
                  stop_accuracy: float, l1_lambda: float):
-    """One round of reward learning on all labels so far, each member's loss plus its L1 penalty; returns (mean member
-    Bradley-Terry loss, without the penalty, accuracy, epochs)."""
+    """One round of reward learning on all labels so far, each member's loss plus its L1 penalty.
+    Returns (mean member Bradley-Terry loss without the penalty, accuracy, epochs)."""
     n, members = prefs.size, model.ensemble_size
     for epoch in range(1, max_epochs + 1):
         order = torch.rand(members, n, device=prefs.labels.device).argsort(1)  # per-member shuffle
@@ -602,12 +602,12 @@ def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, st
 
 
 
-# SPARSE LOGIC: connectivity of the reward input layers (a weight with |w| > 1e-3 counts as a connection)
+# SPARSE LOGIC: connectivity of the reward input layers (|w| > 1e-3 counts as a connection)
 @torch.no_grad()
 def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
-    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean connections (|w| > 1e-3) per
-    relevant column (real features and actions) and per noise column, and the share of connections on relevant columns
-    (chance level: relevant columns / all columns)."""
+    """ANF's metric for an input layer (out, in) on [real obs | noise | action]: mean connections
+    (|w| > 1e-3) per relevant column (real features, actions) and per noise column; share of
+    connections on relevant columns (chance: relevant / all columns)."""
     degree = (weight.abs() > 1e-3).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
