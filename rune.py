@@ -1,5 +1,5 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""RUNE on PEBBLE: an exploration bonus from reward-ensemble uncertainty, in an Extremely Noisy Environment.
+"""RUNE on PEBBLE, in an Extremely Noisy Environment: an exploration bonus from reward uncertainty.
 
 Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
 Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
@@ -16,12 +16,12 @@ The loop, one iteration per env step:
    buffer. One SAC update per step on the learned reward plus RUNE's bonus.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based Reinforcement Learning",
-ICLR 2022) adds an exploration bonus, and `diff pebble.py rune.py` is RUNE: the replay buffer stores, beside the
-ensemble mean r(s, a), the population std sigma(s, a) of the members' predictions (both computed for each new
-transition and recomputed at every relabel), and the critic target uses r + beta_t * sigma with
-beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05, `--rune-beta-decay` 1e-5, the
-reference's values; it calls this geometric decay "linear decay").
+RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based
+Reinforcement Learning", ICLR 2022) adds an exploration bonus; `diff pebble.py rune.py` is RUNE.
+Beside the ensemble mean r(s, a), the replay buffer stores the population std sigma(s, a) of the
+members' predictions, computed per new transition and at every relabel. The critic target uses r +
+beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05,
+`--rune-beta-decay` 1e-5: the reference's values; it calls this geometric decay "linear decay").
 
 Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query
@@ -158,9 +158,9 @@ class Args:
     teacher_eps_equal: float = 0.0
     """the teacher labels a pair equal (0.5) if its returns differ by < eps_equal * margin"""
     rune_beta_init: float = 0.05
-    """RUNE: initial weight beta_0 of the exploration bonus beta_t * sigma(s, a) in the critic target"""
+    """RUNE: initial weight beta_0 of the bonus beta_t * sigma(s, a) in the critic target"""
     rune_beta_decay: float = 1e-5
-    """RUNE: decay rate rho of the bonus weight, beta_t = beta_0 * (1 - rho)^t with t the global env step"""
+    """RUNE: decay rate rho of the bonus weight, beta_t = beta_0 * (1 - rho)^t, t the global step"""
     eval_freq: int = 5000
     """evaluate every this many environment steps (and at the end)"""
     eval_episodes: int = 10
@@ -375,8 +375,8 @@ class Batch(NamedTuple):
 
 
 class ReplayBuffer:
-    """Preallocated circular buffer of transitions; rewards are the reward ensemble's, relabelled in place, with the
-    population std of its members (RUNE's sigma)."""
+    """Preallocated circular transition buffer. Rewards are the ensemble's, relabelled in place,
+    with the population std of its members (RUNE's sigma)."""
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
         self.obs = torch.zeros((capacity, obs_dim), device=device)
@@ -403,8 +403,8 @@ class ReplayBuffer:
 
     @torch.no_grad()
     def relabel(self, reward_fn, chunk: int):
-        """Rewrite every stored reward and std (the whole buffer, also after it wrapped) with `reward_fn([obs, action])`,
-        which returns both."""
+        """Rewrite every stored reward and std with `reward_fn([obs, action])`, which returns both,
+        even after a wrap."""
         for start in range(0, self.size, chunk):
             rows = slice(start, min(start + chunk, self.size))
             inputs = torch.cat([read_noisy(self.obs[rows], self.noise), self.actions[rows]], 1)
@@ -491,7 +491,7 @@ class RewardEnsemble(nn.Module):
         return x.squeeze(-1)
 
     def mean_reward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The agent's reward: the ensemble mean, returned with RUNE's sigma, the members' population std."""
+        """The agent's reward: the ensemble mean, with RUNE's sigma (members' population std)."""
         std, mean = torch.std_mean(self(x), 0, correction=0)
         return mean, std
 
@@ -505,8 +505,8 @@ def rune_beta(step: int, beta_init: float, beta_decay: float) -> float:
 
 
 def rune_batch(data: Batch, beta: float) -> Batch:
-    """A batch with RUNE's reward, the ensemble mean plus beta times the members' population std, for the critic
-    target (the only reader of rewards). Added before `sac_update`, outside a captured step: beta changes every step."""
+    """A batch with RUNE's reward (critic target only): mean + beta * the members' population std.
+    Added outside a captured step, before `sac_update`: beta changes every step."""
     return data._replace(rewards=data.rewards + beta * data.stds)
 
 
