@@ -1,5 +1,5 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SURF on PEBBLE: semi-supervised reward learning with temporal cropping, in an Extremely Noisy Environment.
+"""SURF on PEBBLE in an Extremely Noisy Environment: semi-supervised rewards, temporal cropping.
 
 Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
 Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
@@ -16,29 +16,30 @@ The loop, one iteration per env step:
    relabels the *whole* replay buffer. One SAC update per step on the learned reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-SURF (Park, Seo, Shin, Lee, Abbeel & Lee, "SURF: Semi-supervised Reward Learning with Data Augmentation for
-Feedback-efficient Preference-based Reinforcement Learning", ICLR 2022) changes reward learning, and
-`diff pebble.py surf.py` is SURF. Segments are stored with `surf_crop` extra steps on each side (60 = 50 + 2 * 5) and the
-teacher labels their central `segment_size` steps; each round also stores `surf_unlabeled_ratio` x queries unlabelled
-pairs (uniform sampling, no teacher, no budget). A reward step, per member: the Bradley-Terry loss on temporally
-cropped labelled pairs (one crop length per pair in segment_size +- surf_crop, independent start offsets for the two
-segments in the stored window) plus `surf_lambda` x the loss on `surf_mu * reward_batch_size` cropped unlabelled pairs
-whose pseudo-label is the member's own preference on the uncropped central steps, kept where its probability is at
-least `surf_tau`, averaged over the whole unlabelled minibatch (FixMatch style). A round trains
-ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau 0.99 and mu 1 (the reference's
-README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
+SURF (Park, Seo, Shin, Lee, Abbeel & Lee, "SURF: Semi-supervised Reward Learning with Data
+Augmentation for Feedback-efficient Preference-based Reinforcement Learning", ICLR 2022) changes
+reward learning; `diff pebble.py surf.py` is SURF. Segments are stored with `surf_crop` extra steps
+on each side (60 = 50 + 2 * 5); the teacher labels their central `segment_size` steps. Each round
+also stores `surf_unlabeled_ratio` x queries unlabelled pairs (uniform sampling, no teacher, no
+budget). A reward step, per member: the Bradley-Terry loss on temporally cropped labelled pairs (one
+crop length per pair in segment_size +- surf_crop, independent start offsets per segment in the
+stored window), plus `surf_lambda` x the loss on `surf_mu * reward_batch_size` cropped unlabelled
+pairs. Their pseudo-label is the member's own preference on the uncropped central steps, kept where
+its probability >= `surf_tau`; averaged over the whole unlabelled minibatch (FixMatch style). A
+round trains ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau
+0.99 and mu 1 (the reference's README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
 
 Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
 observations whenever they are read back (replay minibatches, reward training, relabelling, query
 scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
 them after round one). Each asked query counts against the budget; labels obtained are logged apart.
-the training accuracy counts only strict (non-equal) labels; the stored reward of a new transition comes from
-the current reward ensemble and is overwritten by the next relabel. SURF: disagreement and entropy sampling score the
-central steps, and the teacher's skip and equal thresholds use central sums (the reference scores all stored steps,
-and its skip branch sums them); the pseudo-label comes from the same forward pass as the cropped returns (rewards are
-per step, so its central sum is the member's return on the central steps), with the same redrawn noise; the
-unlabelled pool keeps every round's pairs (max_feedback x ratio at most); the logged loss and accuracy are the labelled
-ones over the last pass over the labels, the pseudo-label rate is over the whole round.
+The training accuracy counts only strict (non-equal) labels. The stored reward of a new transition
+comes from the current reward ensemble; the next relabel overwrites it. SURF: disagreement and
+entropy sampling score central steps; the teacher's skip and equal thresholds use central sums (the
+reference scores all stored steps, and its skip branch sums them). Pseudo-labels come from the
+cropped returns' forward pass, same redrawn noise (per-step rewards: the central sum is the member's
+central return). The unlabelled pool keeps all rounds' pairs (max_feedback x ratio at most). Logged
+loss and accuracy: labelled pairs, last pass over them; pseudo-label rate: whole round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
