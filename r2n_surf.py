@@ -154,7 +154,7 @@ class Args:
     reward_batch_size: int = 128
     """labelled pairs per reward-model minibatch"""
     reward_epochs: int = 50
-    """epochs over all labels per feedback round, as SURF's fixed step count ceil(epochs * labels / batch size)"""
+    """epochs over all labels per round, as SURF's fixed step count ceil(epochs * labels / batch)"""
     relabel_batch_size: int = 16384
     """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
     diagnostic_transitions: int = 10_000
@@ -172,9 +172,9 @@ class Args:
     teacher_eps_equal: float = 0.0
     """the teacher labels a pair equal (0.5) if its returns differ by < eps_equal * margin"""
     surf_crop: int = 5
-    """SURF: steps stored on each side of the teacher's segment; crop lengths are segment_size +- surf_crop"""
+    """SURF: steps stored on each side of the teacher's segment; crops are segment_size +- this"""
     surf_unlabeled_ratio: int = 10
-    """SURF: unlabelled pairs stored per query asked (uniform sampling, never shown to the teacher)"""
+    """SURF: unlabelled pairs stored per query asked (uniform, never shown to the teacher)"""
     surf_tau: float = 0.99
     """SURF: a pseudo-label is kept where the member's preference probability is at least tau"""
     surf_lambda: float = 1.0
@@ -560,8 +560,8 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
 
 
 def temporal_crop(shape: tuple, stored: int, segment_size: int, crop: int, device: torch.device) -> torch.Tensor:
-    """SURF's temporal crop of pairs of `stored`-step segments, as a 0/1 step mask (*shape, 2, stored): one length per
-    pair in [segment_size - crop, segment_size + crop], start offsets drawn independently for the two segments."""
+    """SURF's temporal crop of pairs of `stored`-step segments as a 0/1 step mask (*shape, 2,
+    stored). One length per pair in segment_size +- crop; independent start offsets per segment."""
     lengths = torch.randint(segment_size - crop, segment_size + crop + 1, (*shape, 1, 1), device=device)
     starts = (torch.rand((*shape, 2, 1), device=device) * (stored - lengths + 1)).long()  # uniform in [0, stored - L]
     steps = torch.arange(stored, device=device)
@@ -569,27 +569,27 @@ def temporal_crop(shape: tuple, stored: int, segment_size: int, crop: int, devic
 
 
 def pseudo_labels(returns: torch.Tensor, tau: float):
-    """SURF's pseudo-labels from a member's returns (..., 2): the preferred segment (1.0 if segment 1), and whether its
-    preference probability reaches tau (the pairs whose label is kept)."""
+    """SURF's pseudo-labels from a member's returns (..., 2): the preferred segment (1.0 if segment
+    1), and whether its preference probability reaches tau (the pairs whose label is kept)."""
     confidence, preferred = returns.softmax(-1).max(-1)
     return preferred.float(), confidence >= tau
 
 
 def pseudo_label_loss(returns: torch.Tensor, targets: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
-    """SURF's unlabelled loss per member: cross-entropy of returns (E, B, 2) with the pseudo-labels (E, B) where kept,
-    averaged over the whole minibatch (the pairs not kept count as 0, FixMatch style)."""
+    """SURF's unlabelled loss per member: cross-entropy of returns (E, B, 2) with pseudo-labels
+    (E, B) where kept, averaged over the whole minibatch (unkept pairs count 0, FixMatch style)."""
     log_probs = F.log_softmax(returns, dim=-1)
     return -(kept * ((1 - targets) * log_probs[..., 0] + targets * log_probs[..., 1])).mean(-1)
 
 
 def surf_iterations(n_labels: int, epochs: int, batch_size: int) -> int:
-    """Reward steps in a SURF round: `epochs` passes over the labels as a fixed count, no early stop."""
+    """Reward steps of a SURF round: `epochs` passes over the labels, fixed, no early stop."""
     return math.ceil(epochs * n_labels / batch_size)
 
 
 def member_minibatches(n: int, members: int, batch_size: int, device: torch.device):
-    """Endless minibatch indices (E, B) into n items: an independent shuffle per member, a new one after each pass (the
-    last minibatch of a pass may be short)."""
+    """Endless minibatch indices (E, B) into n items: an independent shuffle per member, a new one
+    after each pass (the last minibatch of a pass may be short)."""
     while True:
         order = torch.rand(members, n, device=device).argsort(1)
         for start in range(0, n, batch_size):
@@ -598,9 +598,9 @@ def member_minibatches(n: int, members: int, batch_size: int, device: torch.devi
 
 def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unlabeled: PreferenceBuffer, batch_size: int,
                  epochs: int, crop: int, tau: float, lam: float, mu: int):
-    """One round of SURF reward learning: `surf_iterations` steps of the Bradley-Terry loss on cropped labelled pairs plus
-    `lam` x the pseudo-label loss on `mu * batch_size` cropped unlabelled pairs, per member. Returns (mean member loss and
-    accuracy over the last pass over the labels, epochs, share of unlabelled pairs that got a pseudo-label)."""
+    """A SURF reward round, per member: `surf_iterations` steps of the Bradley-Terry loss on cropped
+    labelled pairs plus `lam` x the pseudo-label loss on `mu * batch_size` cropped unlabelled pairs.
+    Returns mean member loss and accuracy (last pass over labels), epochs, pseudo-labelled share."""
     n, members, device = prefs.size, model.ensemble_size, prefs.labels.device
     central, iterations = slice(crop, crop + prefs.segment_size), surf_iterations(n, epochs, batch_size)
     labeled_batches = member_minibatches(n, members, batch_size, device)
@@ -624,7 +624,7 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unla
         (member_losses + lam * unlabeled_losses).sum().backward()
         optimizer.step()
         pairs += labels.shape[1]
-        if iteration >= iterations - math.ceil(n / batch_size):  # the last pass over the labels, as PEBBLE's last epoch
+        if iteration >= iterations - math.ceil(n / batch_size):  # last pass: PEBBLE's last epoch
             is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5]; no answer is right
             correct += (((returns[..., 1] > returns[..., 0]) == (labels > 0.5)) & is_strict).sum()
             strict += is_strict.sum()
@@ -658,8 +658,8 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
 @torch.no_grad()
 def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
                    pool_multiplier: int, noise=None, crop: int = 0, with_physics: bool = False):
-    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement / entropy). SURF:
-    segments of segment_size + 2 * crop steps, scored on their central segment_size steps."""
+    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement /
+    entropy). SURF: segments of segment_size + 2 * crop steps, scored on the central ones."""
     if sampling == "uniform":
         return store.sample_segments(n_queries, segment_size + 2 * crop, with_physics)
     stored = segment_size + 2 * crop
@@ -958,7 +958,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
         reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
         args.surf_crop, with_physics=True,
     )
-    central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # the teacher sees the central steps
+    central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # what the teacher sees
     keep, labels, sha256, waited = ask_teacher(
         external, queries.next_round, args, loop, obs_dim, segments[:, :, central], true_rewards[:, :, central],
         physics[:, :, central], global_step,
