@@ -25,8 +25,8 @@ transition comes from the current reward ensemble; the next relabel overwrites i
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 
-This file is SET-PEBBLE, the R2N paper's SET baseline: r2n_pebble.py with random regrowth (SET, Mocanu et al.,
-Nat. Commun. 2018) instead of RigL's gradient-based one, as `diff r2n_pebble.py set_pebble.py` shows. What it changes:
+SET-PEBBLE, the R2N paper's SET baseline: r2n_pebble.py with random regrowth (SET, Mocanu et al.,
+Nat. Commun. 2018), not RigL's gradient-based one (`diff r2n_pebble.py set_pebble.py`). It changes:
 R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
 Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
 and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%

@@ -25,8 +25,8 @@ transition comes from the current reward ensemble; the next relabel overwrites i
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 
-This file is Static-PEBBLE, the R2N paper's static sparse training baseline: r2n_pebble.py whose random masks
-never change (no topology update), as `diff r2n_pebble.py static_pebble.py` shows. What it changes:
+Static-PEBBLE, the R2N paper's static sparse training baseline: r2n_pebble.py whose random masks
+never change (no topology update; `diff r2n_pebble.py static_pebble.py`). What it changes:
 R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
 Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
 and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%
