@@ -1,36 +1,37 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""RUNE on PEBBLE: an exploration bonus from reward-ensemble uncertainty, in an Extremely Noisy Environment.
+"""RUNE on PEBBLE, in an Extremely Noisy Environment: an exploration bonus from reward uncertainty.
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
-Unsupervised Pre-training" (ICML 2021), as used by the R2N paper (Muslimani et al., AAMAS 2025), with the paper's
-appendix defaults, plus RUNE's exploration bonus (last paragraphs). The loop, one iteration per
-env step:
+Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
+Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
+AAMAS 2025), with that paper's appendix defaults, plus RUNE's exploration bonus (last paragraphs).
+The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
-2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std). It is computed on
-   the full observation, noise included, as the paper's PEBBLE does.
-3. at `learning_starts + unsup_steps`: first feedback round (uniform sampling), relabel, reset the critic, then
-   `reset_updates` SAC updates.
-4. every `feedback_freq` steps while budget is left: a feedback round (sample queries, simulated teacher, train the
-   reward ensemble on all labels so far, relabel the *whole* replay buffer); one SAC update per step on the learned
-   reward plus RUNE's bonus.
-Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
+2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
+   As in the paper's PEBBLE, it is computed on the full observation, noise included.
+3. at `learning_starts + unsup_steps`: the first feedback round (uniform sampling), a relabel,
+   a critic reset, then `reset_updates` SAC updates.
+4. every `feedback_freq` steps while budget is left: a feedback round. It samples queries, asks the
+   simulated teacher, trains the reward ensemble on all labels so far, relabels the *whole* replay
+   buffer. One SAC update per step on the learned reward plus RUNE's bonus.
+Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based Reinforcement Learning",
-ICLR 2022) adds an exploration bonus, and `diff pebble.py rune.py` is RUNE: the replay buffer stores, beside the
-ensemble mean r(s, a), the population std sigma(s, a) of the members' predictions (both computed for each new
-transition and recomputed at every relabel), and the critic target uses r + beta_t * sigma with
-beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05, `--rune-beta-decay` 1e-5, the
-reference's values; it calls this geometric decay "linear decay").
+RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based
+Reinforcement Learning", ICLR 2022) adds an exploration bonus; `diff pebble.py rune.py` is RUNE.
+Beside the ensemble mean r(s, a), the replay buffer stores the population std sigma(s, a) of the
+members' predictions, computed per new transition and at every relabel. The critic target uses r +
+beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05,
+`--rune-beta-decay` 1e-5: the reference's values; it calls this geometric decay "linear decay").
 
-Choices where the paper is silent: `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query scoring, k-NN),
-as ANF does; the teacher is B-Pref's with its thresholds applied as written (the reference squares them after the
-first round, we do not); every query asked counts against the budget, labels actually obtained are logged apart;
-accuracy for early stopping counts only strict (non-equal) labels; the stored reward of a new transition comes from
-the current reward ensemble and is overwritten by the next relabel. RUNE, as in its reference code: the bonus enters
-only the critic target (the actor sees it through Q), in the post-reset updates too, never in pre-training (state-entropy
-reward) nor in evaluation; sigma is not normalised; beta_t decays from step 0, not from the first feedback round.
+Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
+observations whenever they are read back (replay minibatches, reward training, relabelling, query
+scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
+them after round one). Each asked query counts against the budget; labels obtained are logged apart.
+Early stopping's accuracy counts only strict (non-equal) labels. The stored reward of a new
+transition comes from the current reward ensemble; the next relabel overwrites it.
+RUNE, as in its reference code: the bonus enters only the critic target (the actor sees it through
+Q), post-reset updates included, never pre-training (state-entropy reward) nor evaluation. Sigma is
+not normalised. beta_t decays from step 0, not from the first feedback round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -67,13 +68,13 @@ class Args:
 
     # Environment arguments
     env_id: str = "cheetah-run"
-    """the task: a dm_control one as domain-task (cheetah-run), or a gymnasium MuJoCo one (HalfCheetah-v5, Hopper-v5, ...)"""
+    """the task: dm_control as domain-task (cheetah-run), or gymnasium MuJoCo (Hopper-v5, ...)"""
     noise: float = 0.9
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
     noise_resample: bool = True
-    """redraw the noise columns of stored observations whenever they are read back (ANF's semantics)"""
+    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000
@@ -115,7 +116,7 @@ class Args:
     max_feedback: int = 1000
     """total preference queries (the feedback budget)"""
     queries_per_round: Optional[int] = None
-    """queries per feedback round; computed at runtime when left unset: max(1, max_feedback // 100)"""
+    """queries per feedback round (unset: max(1, max_feedback // 100), computed at runtime)"""
     feedback_freq: int = 5000
     """environment steps between feedback rounds"""
     segment_size: int = 50
@@ -143,11 +144,11 @@ class Args:
     relabel_batch_size: int = 16384
     """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
     diagnostic_transitions: int = 10_000
-    """stored transitions (at fixed relative positions in the buffer) behind `pbrl/reward_true_corr`"""
+    """stored transitions behind `pbrl/reward_true_corr` (at fixed relative buffer positions)"""
     diagnostic_pairs: int = 256
-    """fresh segment pairs per round behind `pbrl/heldout_accuracy` (oracle labels, never trained on nor counted)"""
+    """new pairs per round for `pbrl/heldout_accuracy`; oracle labels, not trained on or counted"""
     teacher_beta: float = -1.0
-    """teacher rationality: Bernoulli labels with P = sigmoid(beta * return gap) if > 0, else deterministic"""
+    """rationality: if > 0, Bernoulli(sigmoid(beta * return gap)) labels, else deterministic"""
     teacher_gamma: float = 1.0
     """teacher myopia: step h of H is weighted by gamma^(H-h)"""
     teacher_eps_mistake: float = 0.0
@@ -155,17 +156,18 @@ class Args:
     teacher_eps_skip: float = 0.0
     """the teacher skips pairs where neither segment's return exceeds eps_skip * margin"""
     teacher_eps_equal: float = 0.0
-    """the teacher labels pairs whose returns differ by less than eps_equal * margin as equal (0.5)"""
+    """the teacher labels a pair equal (0.5) if its returns differ by < eps_equal * margin"""
     rune_beta_init: float = 0.05
-    """RUNE: initial weight beta_0 of the exploration bonus beta_t * sigma(s, a) in the critic target"""
+    """RUNE: initial weight beta_0 of the bonus beta_t * sigma(s, a) in the critic target"""
     rune_beta_decay: float = 1e-5
-    """RUNE: decay rate rho of the bonus weight, beta_t = beta_0 * (1 - rho)^t with t the global env step"""
+    """RUNE: decay rate rho of the bonus weight, beta_t = beta_0 * (1 - rho)^t, t the global step"""
     eval_freq: int = 5000
     """evaluate every this many environment steps (and at the end)"""
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched; none of them changes what it learns
+    # Run settings: where the run writes, what it keeps, how it is watched.
+    # None of them changes what it learns.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -173,14 +175,18 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be used when available"""
     compile: bool = False
-    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
-    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    """torch.compile the SAC steps (critic, actor and temperature, target). Faster on a GPU.
+    Numerics are within float tolerance of eager.
+    analyze.py never averages or compares runs with other numerics flags."""
     tf32: bool = False
-    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
+    Faster; numerics differ from FP32."""
     cuda_graph: bool = False
-    """replay the SAC steps' gradients as CUDA graphs (a GPU only): faster, the same numbers as eager on that GPU"""
+    """replay the SAC steps' gradients as CUDA graphs (GPU only).
+    Faster; the same numbers as eager on that GPU."""
     parallel_eval: bool = False
-    """step the evaluation envs at once, each in a process of its own: faster where cores are free, the same returns"""
+    """step the evaluation envs at once, each in its own process.
+    Faster where cores are free; the same returns."""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -188,31 +194,36 @@ class Args:
     wandb_entity: Optional[str] = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`).
+    Needs the `video` extra."""
     save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model`.
+    It is written at every evaluation."""
     threads: Optional[int] = None
-    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
     run_name: Optional[str] = None
-    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
+    A folder holding a `state.pt` is resumed."""
     state_minutes: float = 10.0
-    """write the full training state `runs/{run_name}/state.pt` after the step that ends this many minutes of wall time
-    since the last one, and on SIGTERM / SIGUSR2 (a 1024-wide state is about 1 GB: keep writes rare)"""
+    """write the full training state `runs/{run_name}/state.pt` every this many wall-time minutes.
+    It is written after the step that ends the interval, and on SIGTERM / SIGUSR2.
+    A 1024-wide state is about 1 GB, so keep writes rare."""
     checkpoint_freq: Optional[int] = None
     """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
     teacher: Literal["simulated", "external"] = "simulated"
-    """who answers the queries: B-Pref's simulated teacher, or a person or program through files (docs/labelling.md)"""
+    """who answers: B-Pref's simulated teacher, or a person/program via files (docs/labelling.md)"""
     preferences: Optional[str] = None
-    """an earlier run's `preferences/` folder (or one `.npz` of it): its labels seed the reward model's dataset (they
-    count in the budget)"""
+    """an earlier run's `preferences/` folder, or one `.npz` of it.
+    Its labels seed the reward model's dataset and count in the budget."""
 
 
 def validate_args(args: Args) -> None:
-    """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
+    """Fail fast on bad input, before anything is written:
+    a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
@@ -317,20 +328,24 @@ class Actor(nn.Module):
         mean, log_std = self(obs)
         eps = torch.randn_like(mean)
         x = mean + log_std.exp() * eps
-        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        # the Gaussian log-density written out: torch.distributions
+        # validates its arguments, a host sync per call
         log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        # log|d tanh(x)/dx|, numerically stable
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))
         return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
 
 @torch.no_grad()
 def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
-    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    """One deterministic episode per env, stepped in
+    lockstep (one batched forward); returns true returns."""
     obs = np.stack([env.reset()[0] for env in envs])
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
-        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
+        # MuJoCo would raise on them: a NaN return, which stops the run
+        if not np.isfinite(actions).all():
             return np.full(len(envs), np.nan)
         stepping = np.flatnonzero(running)
         for i in stepping:  # all at once when they are processes (`--parallel-eval`)
@@ -342,9 +357,10 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
     return returns
 
 
-# ALGO LOGIC: the storage PEBBLE learns from: replay buffer (relabelled in place), episodes, labelled pairs
+# ALGO LOGIC: PEBBLE's storage: replay buffer (relabelled in place), episodes, labelled pairs
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
-    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    """Stored rows as the networks read them: with
+    `--noise-resample`, a copy with fresh noise columns."""
     return x if noise is None else noise.refresh_(x.clone())
 
 
@@ -359,15 +375,16 @@ class Batch(NamedTuple):
 
 
 class ReplayBuffer:
-    """Preallocated circular buffer of transitions; rewards are the reward ensemble's, relabelled in place, with the
-    population std of its members (RUNE's sigma)."""
+    """Preallocated circular transition buffer. Rewards are the ensemble's, relabelled in place,
+    with the population std of its members (RUNE's sigma)."""
 
     def __init__(self, capacity: int, obs_dim: int, act_dim: int, device: torch.device, noise=None):
         self.obs = torch.zeros((capacity, obs_dim), device=device)
         self.next_obs = torch.zeros((capacity, obs_dim), device=device)
         self.actions = torch.zeros((capacity, act_dim), device=device)
         self.rewards = torch.zeros(capacity, device=device)
-        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
+        # for diagnostics only: the agent never reads it
+        self.true_rewards = torch.zeros(capacity, device=device)
         self.stds = torch.zeros(capacity, device=device)
         self.dones = torch.zeros(capacity, device=device)
         self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
@@ -386,8 +403,8 @@ class ReplayBuffer:
 
     @torch.no_grad()
     def relabel(self, reward_fn, chunk: int):
-        """Rewrite every stored reward and std (the whole buffer, also after it wrapped) with `reward_fn([obs, action])`,
-        which returns both."""
+        """Rewrite every stored reward and std with `reward_fn([obs, action])`, which returns both,
+        even after a wrap."""
         for start in range(0, self.size, chunk):
             rows = slice(start, min(start + chunk, self.size))
             inputs = torch.cat([read_noisy(self.obs[rows], self.noise), self.actions[rows]], 1)
@@ -395,10 +412,10 @@ class ReplayBuffer:
 
 
 class EpisodeStore:
-    """The last `max_episodes` complete episodes as `[obs, action]` rows and true rewards, for cutting segments."""
+    """Last `max_episodes` whole episodes to cut segments from: [obs, action] rows, true rewards."""
 
     def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int, device: torch.device):
-        self.slots = max_episodes + 1  # one slot is being written while the others hold complete episodes
+        self.slots = max_episodes + 1  # one slot is being written, the others hold whole episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
         # labelling by hand only: the host-side MuJoCo states, to draw a queried segment again
@@ -407,7 +424,7 @@ class EpisodeStore:
         self.n_complete, self.t = 0, 0
 
     def add(self, obs, action, true_reward: float, physics: Optional[np.ndarray] = None):
-        """Append one step; an episode is complete after `episode_length` steps (DMC episodes never end early)."""
+        """Append one step. Episodes last `episode_length` steps: DMC episodes never end early."""
         slot = self.n_complete % self.slots
         self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
         self.true_rewards[slot, self.t] = true_reward
@@ -420,8 +437,8 @@ class EpisodeStore:
             self.n_complete, self.t = self.n_complete + 1, 0
 
     def sample_segments(self, n_pairs: int, length: int, with_physics: bool = False):
-        """Pairs of segments: episode and start drawn independently per side. Returns (n, 2, H, D) and (n, 2, H), and
-        with `with_physics` their physics states (n, 2, H, P) in numpy."""
+        """Segment pairs; each side draws its episode and start independently. Returns (n, 2, H, D),
+        (n, 2, H) and, with `with_physics`, their physics states (n, 2, H, P) in numpy."""
         device = self.inputs.device
         n_available = min(self.n_complete, self.max_episodes)
         episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
@@ -433,7 +450,7 @@ class EpisodeStore:
 
 
 class PreferenceBuffer:
-    """Labelled segment pairs `(n, 2, H, obs+act)` with y = P[segment 1 preferred] in {0, 0.5, 1}."""
+    """Labelled segment pairs `(n, 2, H, obs+act)`, y = P[segment 1 preferred] in {0, 0.5, 1}."""
 
     def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device, noise=None):
         self.segments = torch.zeros((capacity, 2, segment_size, input_dim), device=device)
@@ -451,12 +468,12 @@ class PreferenceBuffer:
 
 # ALGO LOGIC: reward ensemble, Bradley-Terry loss, teacher, query selection, state entropy
 class RewardEnsemble(nn.Module):
-    """`ensemble_size` reward MLPs on [obs, action] in one batched pass: LeakyReLU hidden layers, tanh output."""
+    """`ensemble_size` reward MLPs on [obs, action] in one pass: LeakyReLU hidden, tanh output."""
 
     def __init__(self, input_dim: int, hidden_dim: int, n_hidden: int, ensemble_size: int):
         super().__init__()
         dims = [input_dim] + [hidden_dim] * n_hidden + [1]
-        self.weights = nn.ParameterList()  # weights[0] is the input layer, (E, hidden, input) like nn.Linear
+        self.weights = nn.ParameterList()  # [0]: the input layer, (E, hidden, input) like nn.Linear
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(dims[:-1], dims[1:]):
             bound = 1 / math.sqrt(fan_in)  # nn.Linear's default initialisation, per member
@@ -465,7 +482,7 @@ class RewardEnsemble(nn.Module):
         self.ensemble_size = ensemble_size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Per-member rewards (E, N) of rows x: (N, D) shared by all members, or (E, N, D) one set per member."""
+        """Rewards (E, N) per member of rows x: (N, D) shared by all, or (E, N, D) one set each."""
         if x.dim() == 2:
             x = x.expand(self.ensemble_size, *x.shape)
         for i, (weight, bias) in enumerate(zip(self.weights, self.biases)):
@@ -474,7 +491,7 @@ class RewardEnsemble(nn.Module):
         return x.squeeze(-1)
 
     def mean_reward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The agent's reward: the ensemble mean, returned with RUNE's sigma, the members' population std."""
+        """The agent's reward: the ensemble mean, with RUNE's sigma (members' population std)."""
         std, mean = torch.std_mean(self(x), 0, correction=0)
         return mean, std
 
@@ -488,8 +505,8 @@ def rune_beta(step: int, beta_init: float, beta_decay: float) -> float:
 
 
 def rune_batch(data: Batch, beta: float) -> Batch:
-    """A batch with RUNE's reward, the ensemble mean plus beta times the members' population std, for the critic
-    target (the only reader of rewards). Added before `sac_update`, outside a captured step: beta changes every step."""
+    """A batch with RUNE's reward (critic target only): mean + beta * the members' population std.
+    Added outside a captured step, before `sac_update`: beta changes every step."""
     return data._replace(rewards=data.rewards + beta * data.stds)
 
 
@@ -501,10 +518,10 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
 
 def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int, max_epochs: int,
                  stop_accuracy: float):
-    """One round of reward learning on all labels so far; returns (mean member loss, accuracy, epochs)."""
+    """One round of reward learning on all labels. Returns (mean member loss, accuracy, epochs)."""
     n, members = prefs.size, model.ensemble_size
     for epoch in range(1, max_epochs + 1):
-        order = torch.rand(members, n, device=prefs.labels.device).argsort(1)  # an independent shuffle per member
+        order = torch.rand(members, n, device=prefs.labels.device).argsort(1)  # per-member shuffle
         loss_sum, correct, strict = torch.zeros(3, device=prefs.labels.device)
         for start in range(0, n, batch_size):
             segments, labels = prefs.read(order[:, start : start + batch_size])  # (E, B, 2, H, D), (E, B)
@@ -513,11 +530,11 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batc
             optimizer.zero_grad()
             member_losses.sum().backward()
             optimizer.step()
-            is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5] but have no right answer
+            is_strict = labels != 0.5  # equal pairs train towards [0.5, 0.5]; no answer is right
             correct += (((returns[..., 1] > returns[..., 0]) == (labels > 0.5)) & is_strict).sum()
             strict += is_strict.sum()
             loss_sum += member_losses.detach().sum() * labels.shape[1]
-        accuracy = (correct / strict).item()  # NaN when every label is "equal": never stops early then
+        accuracy = (correct / strict).item()  # NaN when every label is "equal": no early stop then
         if accuracy > stop_accuracy:
             break
     return loss_sum.item() / (n * members), accuracy, epoch
@@ -547,8 +564,8 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
 @torch.no_grad()
 def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
                    pool_multiplier: int, noise=None, with_physics: bool = False):
-    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement / entropy); with
-    `with_physics`, also their physics states."""
+    """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement /
+    entropy). With `with_physics`, also their physics states."""
     if sampling == "uniform":
         return store.sample_segments(n_queries, segment_size, with_physics)
     segments, true_rewards, *physics = store.sample_segments(n_queries * pool_multiplier, segment_size, with_physics)
@@ -585,8 +602,8 @@ class RunningMeanStd:
 
 @torch.no_grad()
 def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 16384) -> torch.Tensor:
-    """L2 distance from each sample to its k-th nearest neighbour among `points`, the sample itself excluded
-    (samples are rows of `points`, so the nearest one, at distance 0, is skipped)."""
+    """L2 distance from each sample to its k-th nearest neighbour among `points`, itself excluded.
+    Samples are rows of `points`, so the nearest one, at distance 0, is skipped."""
     nearest = None
     for part in points.split(chunk):
         d = torch.cdist(samples, part) if nearest is None else torch.cat([nearest, torch.cdist(samples, part)], 1)
@@ -595,17 +612,19 @@ def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int
 
 
 def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, stats: RunningMeanStd) -> torch.Tensor:
-    """PEBBLE's intrinsic reward for rows `indices` of the buffer `points`: k-NN distance / running std."""
+    """PEBBLE's intrinsic reward for rows `indices` of `points`: k-NN distance / running std."""
     distances = knn_distance(points[indices], points, k)
     stats.update(distances)
     return distances / stats.std
 
 
 
-# ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
+# ALGO LOGIC: the agent, and the steps of training
+# (top-level functions: what a captured GPU step replays)
 @dataclass
 class Agent:
-    """SAC's networks, temperature and optimisers. The critic fields are replaced when PEBBLE resets the critic."""
+    """SAC's networks, temperature and optimisers.
+    The critic fields are replaced when PEBBLE resets the critic."""
     actor: Actor
     actor_optimizer: optim.Optimizer
     qf1: SoftQNetwork
@@ -620,7 +639,8 @@ class Agent:
 
 
 def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
-    """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+    """Fresh Q1, Q2, their optimiser and targets (PEBBLE
+    resets the critic at the first feedback round)."""
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
@@ -642,8 +662,8 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
 
 
 def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
-    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target. Returns the losses, on the
-    device."""
+    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target.
+    Returns the losses, on the device."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
         next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
@@ -657,7 +677,8 @@ def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
 
 
 def actor_gradients(agent: Agent, data: Batch) -> dict:
-    """The gradients of the actor's loss, and of the temperature's towards the target entropy. Returns the losses."""
+    """The gradients of the actor's loss, and of the temperature's towards the target entropy.
+    Returns the losses."""
     pi, log_pi, _ = agent.actor.get_action(data.obs)
     actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
     agent.actor_optimizer.zero_grad()
@@ -683,13 +704,15 @@ class Loop:
     labeled_feedback: int = 0  # labels obtained (a skipping teacher gives fewer)
     episode_return: float = 0.0
     episode_length: int = 0
-    # resume only: the env's RNG state at the episode's start (None: the seeded first reset), and the episode's actions
-    # so far, to replay the episode on a resume
+    # resume only: the env's RNG state at the episode's start (None: the seeded first
+    # reset), and the episode's actions so far, to replay the episode on a resume
     episode_start: Optional[dict] = None
     episode_actions: list = field(default_factory=list)
-    recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # for the teacher's margin
-    losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
-    last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
+    recent_returns: deque = field(default_factory=lambda: deque(maxlen=10))  # the teacher's margin
+    # the latest losses, on the device: read every `log_freq` steps
+    losses: dict = field(default_factory=dict)
+    # the last evaluation's tags: logged again after a resume's purge
+    last_eval: dict = field(default_factory=dict)
 
 
 @torch.no_grad()
@@ -714,8 +737,9 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
     `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
 
-    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`, `actor_gradients`,
-    `target_update`) with compiled or captured versions of themselves. The optimiser steps always run eagerly."""
+    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
+    `actor_gradients`, `target_update`) with compiled or captured versions of themselves.
+    The optimiser steps always run eagerly."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -733,7 +757,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
                    reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
                    queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
                    external: Optional["ExternalTeacher"]) -> float:
-    """Ask the teacher one round of queries, train the reward ensemble on all labels, relabel the whole buffer.
+    """Ask a round of queries, train the reward ensemble on all labels, relabel the whole buffer.
     Returns the seconds spent waiting for an external teacher (not training time)."""
     noise, obs_dim = rb.noise, rb.obs.shape[1]
     n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
@@ -770,7 +794,8 @@ def feedback_due(step: int, pebble_start: int, loop: Loop, args: Args) -> bool:
 
 
 def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
-    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    """The trained networks of the `saved` objects, for
+    evaluation and debugging (`state.pt` resumes a run)."""
     agent = saved["agent"]
     checkpoint = {
         "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
@@ -780,16 +805,19 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop; in the PbRL scripts, the query
-# log, the label files and the reward diagnostics. The same in every script (sac.py, anf_sac.py: a subset); tested.
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
+# in the PbRL scripts, the query log, the label files and the reward diagnostics.
+# The same in every script (sac.py, anf_sac.py: a subset); tested.
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
-    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
+    If a run that started in the same second took that folder (runs of a sweep
+    differ in noise or budget, which the name does not show), try the next."""
     unix_time = int(time.time())
     while True:
         run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
         try:
-            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            # atomic: exactly one of two racing runs gets the folder
+            os.makedirs(f"runs/{run_name}")
             return run_name
         except FileExistsError:
             unix_time += 1
@@ -797,11 +825,12 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
-    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)` at every step: the labelling
-    page's status of a run that a person labels."""
+    """A console line at every phase change and at most every `interval` seconds of
+    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
+    used and the latest evaluation return. Its clock is the run's training time
+    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
+    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
+    at every step: the labelling page's status of a run that a person labels."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
         self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
@@ -829,13 +858,14 @@ class Progress:
 
 
 class CudaGraph:
-    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of hundreds of small kernels
-    from Python. Tensor inputs (a `Batch`'s too) are copied into the graph's own before each replay; other inputs are
-    fixed. The first calls run eagerly on a side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the
-    capture), the next is captured, later ones replay it and return the same output tensors, overwritten. A graph reads
-    the tensors it was captured with: when the agent's networks or optimisers are replaced (PEBBLE's critic reset), a
-    fixed input changes, its `signature` changes or a `.grad` it writes is replaced, it is captured again. A change of
-    device stops the run."""
+    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of
+    hundreds of small kernels from Python. Tensor inputs (a `Batch`'s too) are copied into the
+    graph's own before each replay; other inputs are fixed. The first calls run eagerly on a
+    side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the capture), the next
+    is captured, later ones replay it and return the same output tensors, overwritten. A graph
+    reads the tensors it was captured with: when the agent's networks or optimisers are
+    replaced (PEBBLE's critic reset), a fixed input changes, its `signature` changes or a
+    `.grad` it writes is replaced, it is captured again. A change of device stops the run."""
     warmup_calls = 2
 
     def __init__(self, step):
@@ -854,8 +884,8 @@ class CudaGraph:
 
     @staticmethod
     def tf32() -> tuple:
-        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per backend, and there the older flags raise
-        once the newer ones are set."""
+        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
+        backend, and there the older flags raise once the newer ones are set."""
         if hasattr(torch.backends, "fp32_precision"):
             return (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision,
                     torch.backends.cudnn.rnn.fp32_precision)
@@ -864,8 +894,9 @@ class CudaGraph:
 
     @staticmethod
     def signature(inputs, parameters: list) -> tuple:
-        """What a graph depends on besides tensor values: the inputs' shapes and dtypes, the devices, each parameter's
-        `requires_grad` and storage, the TF32 settings. It reads host attributes only, so a call adds no sync."""
+        """What a graph depends on besides tensor values: the inputs' shapes and dtypes,
+        the devices, each parameter's `requires_grad` and storage, the TF32 settings.
+        It reads host attributes only, so a call adds no sync."""
         tensors = CudaGraph.tensors(inputs)
         return (tuple((t.shape, t.dtype) for t in tensors), frozenset(t.device for t in tensors + parameters),
                 tuple((p.requires_grad, p.data_ptr()) for p in parameters), CudaGraph.tf32())
@@ -874,15 +905,17 @@ class CudaGraph:
         """Whether the graph must be captured again; raises where a new capture would be wrong."""
         objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
         replaced = not self.agent_objects or any(a is not b for a, b in zip(objects, self.agent_objects))
-        params = self.parameters(agent) if replaced else self.params  # listing them is slow: once per agent
+        # listing them is slow: once per agent
+        params = self.parameters(agent) if replaced else self.params
         signature = self.signature(inputs, params)
         # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
         if self.seen is not None and signature[1] != self.seen[1]:
             old, new = (", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1]))
             raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {old} and is now called on {new}; "
                                "a CUDA graph replays on one device")
-        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture records what eager now runs.
-        # A replaced `.grad` (zero_grad's None): a replay would write the old one, which the optimiser no longer reads.
+        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
+        # records what eager now runs. A replaced `.grad` (zero_grad's None): a
+        # replay would write the old one, which the optimiser no longer reads.
         stale = replaced or fixed != self.fixed or signature != self.seen or any(p.grad is not g for p, g in self.grads)
         if stale:  # held here, the replaced objects keep their ids: no false match
             self.agent_objects, self.fixed, self.params, self.seen, self.grads = objects, fixed, params, signature, []
@@ -906,7 +939,8 @@ class CudaGraph:
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 self.outputs = self.step(agent, *self.inputs)
-            # Only the `.grad` tensors the capture created or added to: another step's may change freely.
+            # Only the `.grad` tensors the capture created
+            # or added to: another step's may change freely.
             self.grads = [(p, p.grad) for p, g, v in before if p.grad is not g or (g is not None and g._version != v)]
             self.graph = graph  # only once captured: a failed capture is never replayed
         elif self.tensors(inputs):
@@ -922,7 +956,8 @@ RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_enti
 
 
 def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    """The run folder, and the saved state when `--run-name`
+    names a folder holding a `state.pt` (else None)."""
     if args.run_name is None:
         return make_run_folder(args.env_id, args.exp_name, args.seed), None
     path = f"runs/{args.run_name}/state.pt"
@@ -933,13 +968,15 @@ def open_run(args) -> tuple:
         os.makedirs(f"runs/{args.run_name}")
         return args.run_name, None
     try:
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+        # our own file: not only tensors
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
     if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
         raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
                          "it with that version (git checkout 88b95d9)")
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    # a flag added since: its default
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
     changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
                if name not in RESUMABLE_FLAGS and saved[name] != value]
     if changed:
@@ -949,7 +986,8 @@ def open_run(args) -> tuple:
 
 
 def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    """Write a temporary file, flush it to disk, then rename
+    it: a kill during the write leaves the last state."""
     with open(f"{path}.tmp", "wb") as f:
         torch.save(state, f)
         f.flush()
@@ -957,15 +995,16 @@ def save_atomically(state: dict, path: str):
     os.replace(f"{path}.tmp", path)
 
 
-PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of these types are saved as they are
+# a dataclass's fields of these types are saved as they are
+PLAIN = (int, float, list, dict, deque, type(None))
 
 
 def state_of(obj):
     """What `state.pt` keeps of an object.
 
-    That is a tensor itself, a sparse optimizer's inner state with its masks and counters, `obj.state_dict()`, a
-    dataclass field by field, a buffer's stored rows (`stored_rows`), or for another plain object (episode store,
-    statistics) its tensors and numbers."""
+    That is a tensor itself, a sparse optimizer's inner state with its masks and counters,
+    `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
+    or for another plain object (episode store, statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
     if hasattr(obj, "masks"):  # the weights are saved with their networks
@@ -982,10 +1021,11 @@ def state_of(obj):
 
 
 def stored_rows(buffer) -> dict:
-    """A buffer's numbers and the first `size` rows of its tensors: a slice alone would save the whole preallocation.
+    """A buffer's numbers and the first `size` rows of its
+    tensors: a slice alone would save the whole preallocation.
 
-    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`, that is at episode ends and in the
-    newest row. The comparison is bitwise."""
+    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`,
+    that is at episode ends and in the newest row. The comparison is bitwise."""
     n = buffer.size
     state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
     state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
@@ -1001,7 +1041,8 @@ def load_stored_rows_(buffer, state: dict):
     """Restore what `stored_rows` saved, in place."""
     for name, rows in state["rows"].items():
         full = getattr(buffer, name)
-        if full.shape[1:] != rows.shape[1:]:  # a buffer that allocates its rows at the first add (SURF's segments)
+        # a buffer that allocates its rows at the first add (SURF's segments)
+        if full.shape[1:] != rows.shape[1:]:
             full = full.new_zeros((len(full), *rows.shape[1:]))
             setattr(buffer, name, full)
         full[: len(rows)] = rows
@@ -1026,7 +1067,8 @@ def load_state_(obj, state):
         vars(obj).update(state["counters"])
     elif hasattr(obj, "load_state_dict"):
         obj.load_state_dict(state)
-    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
+    # what `state_of` saved as it was is set, the rest restored in place
+    elif dataclasses.is_dataclass(obj):
         for name, value in state.items():
             if isinstance(getattr(obj, name), PLAIN):
                 setattr(obj, name, value)
@@ -1043,7 +1085,8 @@ def load_state_(obj, state):
 
 
 def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    """The global generators: python's, numpy's, torch's
+    (and the GPU's on one); the envs keep their own."""
     cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
     return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
 
@@ -1058,8 +1101,8 @@ def set_rng_states(states: dict, device: torch.device):
 
 
 def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
-    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the points the interrupted one
-    logged after its state (TensorBoard's purge_step)."""
+    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the
+    points the interrupted one logged after its state (TensorBoard's purge_step)."""
     if args.track:
         import wandb
 
@@ -1073,8 +1116,8 @@ def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
 
 
 def catch_stop_signals() -> list:
-    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the returned list; the loop then
-    saves the state at the end of its step and exits."""
+    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the
+    returned list; the loop then saves the state at the end of its step and exits."""
     stop_signals = []
     for signum in (signal.SIGTERM, signal.SIGUSR2):
         signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
@@ -1082,11 +1125,13 @@ def catch_stop_signals() -> list:
 
 
 class Stopped(Exception):
-    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+    """SIGTERM or SIGUSR2: the state is saved; the run exits
+    with exit code 1 and one line saying how to resume."""
 
 
 class NonFinite(Exception):
-    """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
+    """A non-finite value: the run writes its checkpoint
+    and stops with exit code 1 and one line naming it."""
 
 
 def check_finite(values: dict, step: int):
@@ -1097,10 +1142,11 @@ def check_finite(values: dict, step: int):
 
 def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
                device: torch.device, envs: list, writer: SummaryWriter):
-    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
-    objects, the generators, the envs' generators and the observation to act on."""
+    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
+    the `saved` objects, the generators, the envs' generators and the observation to act on."""
     started = time.time()
-    writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+    # the points up to this step are on disk before a state that a resume purges back to
+    writer.flush()
     save_atomically({
         "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
         "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
@@ -1111,8 +1157,9 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
 
 
 def state_due(global_step: int, args, last_state: float) -> bool:
-    """Whether `state.pt` is written after this step: `state_minutes` after the last one (`last_state`, from
-    `time.monotonic`), or every `checkpoint_freq` steps if set; at the last step only with `keep_state`."""
+    """Whether `state.pt` is written after this step: `state_minutes` after the
+    last one (`last_state`, from `time.monotonic`), or every `checkpoint_freq`
+    steps if set; at the last step only with `keep_state`."""
     if global_step + 1 == args.total_timesteps:
         return args.keep_state
     if args.checkpoint_freq is not None:
@@ -1122,8 +1169,9 @@ def state_due(global_step: int, args, last_state: float) -> bool:
 
 def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
                 progress: Progress, state_path: str) -> tuple:
-    """Start, or continue from the saved state: restore the `saved` objects, replay the running episode on `envs[0]`
-    to where the saved run was, then restore the generators. Returns (observation, first step, seconds trained)."""
+    """Start, or continue from the saved state: restore the `saved` objects, replay the
+    running episode on `envs[0]` to where the saved run was, then restore the generators.
+    Returns (observation, first step, seconds trained)."""
     loop = saved["loop"]
     if resume is not None:
         for name, obj in saved.items():
@@ -1139,7 +1187,8 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
     start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
-    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+    # the purge hid the step's evaluation
+    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
     progress.eval_return = loop.last_eval.get("eval/episodic_return")
@@ -1149,7 +1198,7 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
 
 # the queries and labels of a run (`preferences/`) and the external teacher (docs/labelling.md)
 def write_npz(path: str, **arrays):
-    """`np.savez` to a temporary file, then rename: a reader never sees half a file, a kill keeps the last one."""
+    """`np.savez` to a temp file, then rename: no reader sees half a file; a kill keeps the last."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(f"{path}.tmp", "wb") as f:
         np.savez(f, **arrays)
@@ -1157,10 +1206,10 @@ def write_npz(path: str, **arrays):
 
 
 class QueryLog:
-    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included), true rewards and
-    physics states, the label (NaN: skipped), the round (-1: from `--preferences`) and the env step; per round, the
-    SHA-256 of the labels file its labels were read from (`--teacher external`; else empty). The run's folder
-    `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
+    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included),
+    true rewards and physics states, the label (NaN: skipped), the round (-1: `--preferences`), the
+    env step. Per round, the SHA-256 of its labels file (`--teacher external`; else empty). The
+    run's folder `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
 
     def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
@@ -1178,13 +1227,13 @@ class QueryLog:
                    rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
         for name, value in new.items():
             setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
-        if round_index >= 0:  # padded: a state written before the SHA-256 were kept resumes with none for its rounds
+        if round_index >= 0:  # padded: older states (no SHA-256 kept) resume with none per round
             self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
                                                 [label_sha256]]).astype("<U64")
 
     def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
-        """Write one round's queries to `{folder}/{round}.npz` (those from `--preferences`: `seeded.npz`).
-        Each round gets a file of its own, so a round writes its own queries only, not the whole log again."""
+        """Write one round's queries to `{folder}/{round}.npz` (from `--preferences`: `seeded.npz`).
+        Each round has its own file: it writes its own queries, not the whole log again."""
         rows = self.rounds == round_index
         inputs = self.inputs[rows]
         sha256 = self.label_sha256[round_index:round_index + 1] if round_index >= 0 else self.label_sha256[:0]
@@ -1195,8 +1244,8 @@ class QueryLog:
 
 
 def read_preferences(path: str) -> dict:
-    """A run's query log as one set of arrays: its `preferences/` folder (seeded first, then the rounds in order) or
-    a single `.npz` file."""
+    """A run's query log as one set of arrays, from its `preferences/` folder (seeded first, then
+    the rounds in order) or a single `.npz` file."""
     if os.path.isdir(path):
         rounds = sorted(int(name[:-4]) for name in os.listdir(path) if name.endswith(".npz") and name[:-4].isdigit())
         seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
@@ -1214,8 +1263,8 @@ def read_preferences(path: str) -> dict:
 
 
 def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
-    """The arrays of an earlier run's query log, its `preferences/` folder or one `.npz` of it (`--preferences`);
-    a ValueError with one line if they do not fit this run."""
+    """The arrays of an earlier run's query log (`--preferences`): its `preferences/` folder or one
+    `.npz` of it. A ValueError with one line if they do not fit this run."""
     if not os.path.exists(path):
         raise ValueError(f"--preferences: no such file or folder: {path}")
     try:
@@ -1233,15 +1282,15 @@ def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
 
 
 class ExternalTeacher:
-    """`--teacher external` (docs/labelling.md): a round's queries go to `queries/{round}.npz`, its labels
-    come from `labels/{round}.json`, a JSON list with, per query, 1 (the second segment is preferred), 0 (the first),
-    0.5 (equal) or "skip". The run reads a round's file once it is valid and records its SHA-256; a resume checks
-    that the files it trained on are unchanged (`check_labels_unchanged`). `teacher.json` tells the labelling page
-    what the run is doing: waiting for a round (rewritten every poll), training (its step rewritten every
-    `step_seconds`), finished or stopped."""
+    """`--teacher external` (docs/labelling.md): queries go to `queries/{round}.npz`, labels come
+    from `labels/{round}.json`: a JSON list with, per query, 1 (second segment preferred), 0 (the
+    first), 0.5 (equal) or "skip". The run reads a round's file once it is valid and records its
+    SHA-256. A resume checks that the files it trained on are unchanged (`check_labels_unchanged`).
+    `teacher.json` tells the labelling page what the run does: waiting for a round (rewritten every
+    poll), training (step rewritten every `step_seconds`), finished or stopped."""
 
-    step_seconds = 2.0  # while training, the step in teacher.json is rewritten this often at most (the page polls
-                        # every 2 s)
+    step_seconds = 2.0  # while training, teacher.json's step is rewritten at most this often
+                        # (the page polls every 2 s)
 
     def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
         self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
@@ -1250,8 +1299,8 @@ class ExternalTeacher:
         self.status, self.told = None, -math.inf  # the last status written; when the step was (training seconds)
 
     def nap(self):
-        """Sleep `poll_seconds`, or until a stop signal: Python resumes a sleep after the signal's handler, so the
-        wait sleeps in short naps to end at once."""
+        """Sleep `poll_seconds`, or until a stop signal. Python resumes a sleep after the signal's
+        handler, so the wait sleeps in short naps to end at once."""
         until = time.monotonic() + self.poll_seconds
         while not self.stop_signals and time.monotonic() < until:
             time.sleep(0.05)
@@ -1262,8 +1311,8 @@ class ExternalTeacher:
                         step=step, message=message))
 
     def training(self, step: int, seconds: float):
-        """Called every step (`Progress.update`): while the run trains after a round, `teacher.json` says the current
-        step, rewritten every `step_seconds` of training (`seconds`) at most."""
+        """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
+        says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
         if self.status is None or self.status["phase"] != "training" or seconds - self.told < self.step_seconds:
             return
         self.told = seconds
@@ -1278,10 +1327,10 @@ class ExternalTeacher:
 
     def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
             physics: np.ndarray, step: int, asked: int, labelled: int) -> tuple:
-        """Write the round's queries, then wait for a valid labels file; a malformed one gets one line (and the
-        page's notice) and the wait goes on. Returns (the answered pairs' mask, labels with 0 where skipped, both on
-        the segments' device; the file's SHA-256; seconds spent waiting). A stop signal raises `Stopped`: the state
-        written before the round resumes into it."""
+        """Write the round's queries, then wait for a valid labels file. A malformed one gets one
+        line (and the page's notice); the wait goes on. Returns the answered pairs' mask and labels
+        (0 where skipped), both on the segments' device, the file's SHA-256 and seconds waited. A
+        stop signal raises `Stopped`: the state written before the round resumes into it."""
         rows = segments.cpu().numpy()
         write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim],
                   actions=rows[..., obs_dim:], physics=physics, true_rewards=true_rewards.cpu().numpy())
@@ -1292,7 +1341,7 @@ class ExternalTeacher:
             if self.stop_signals:
                 import gc
 
-                gc.freeze()  # the run ends: its exit need not collect torch's objects and the run's (a second or more)
+                gc.freeze()  # run ends; exit skips collecting torch's and the run's objects (1 s+)
                 raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
                               f"round is saved: run the same command with --run-name {self.run['run']} to resume")
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
@@ -1315,8 +1364,8 @@ class ExternalTeacher:
 
 
 def check_labels_unchanged(folder: str, queries: dict):
-    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds what it read,
-    or a ValueError says which."""
+    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds
+    what it read, or a ValueError says which."""
     for round_index, recorded in enumerate(queries.get("label_sha256", [])):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
@@ -1324,16 +1373,16 @@ def check_labels_unchanged(folder: str, queries: dict):
                              f"back as it was (the run's preferences/{round_index}.npz holds its labels)")
 
 
-LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
+LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # exactly these spellings: not 1.0, 1e0, -0 or 0.50
 
 
 def labels_problem(content: bytes, n: int) -> Optional[str]:
-    """Why a labels file's bytes are not n valid answers (a JSON list, each exactly 0, 1, 0.5 or "skip"), or None.
-    The labelling page checks by the same rule (label_app.parse_answers)."""
+    """Why a labels file's bytes are not n valid answers, or None. Valid: a JSON list, each exactly
+    0, 1, 0.5 or "skip". The labelling page checks by the same rule (label_app.parse_answers)."""
     number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
         answers = json.loads(content, parse_int=number, parse_float=number, parse_constant=number)
-    except (ValueError, RecursionError) as e:  # a UnicodeDecodeError and a JSONDecodeError are ValueErrors
+    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
         return f"not JSON ({type(e).__name__})"
     # true and false are bools, which Python counts as 1 and 0
     if not isinstance(answers, list) or len(answers) != n or any(
@@ -1353,8 +1402,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
                 segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray, step: int) -> tuple:
     """A round's labels: (answered mask, labels, the labels file's SHA-256, seconds waited).
 
-    A person or a program answers through files where there is an external teacher (labelling by hand); else
-    B-Pref's simulated teacher answers from the segments' true rewards."""
+    With an external teacher, a person or a program answers through files (labelling by hand).
+    Else B-Pref's simulated teacher answers from the segments' true rewards."""
     if external and len(segments):
         return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics, step,
                             loop.total_feedback, loop.labeled_feedback)
@@ -1368,8 +1417,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
 
 def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, segments: torch.Tensor,
                 true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
-    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz` (labels: NaN where
-    skipped)."""
+    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
+    Labels are NaN where skipped."""
     round_index = queries.next_round
     queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), round_index, step,
                 sha256)
@@ -1378,7 +1427,7 @@ def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, seg
 
 def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
               episodes, diagnostic_positions: torch.Tensor):
-    """The tags of a feedback round: the feedback counts, the reward optimiser's steps and the reward diagnostics."""
+    """The tags of a feedback round: feedback counts, reward optimiser steps, reward diagnostics."""
     writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
     writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
     writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
@@ -1387,7 +1436,7 @@ def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model:
 
 
 def optimizer_steps(optimizer) -> int:
-    """Optimiser steps taken so far, for `pbrl/reward_steps`: Adam's own count (through a wrapper's `optimizer`)."""
+    """Optimiser steps so far (`pbrl/reward_steps`): Adam's count, via a wrapper's `optimizer`."""
     states = getattr(optimizer, "optimizer", optimizer).state.values()
     return max((int(state["step"]) for state in states), default=0)
 
@@ -1395,10 +1444,10 @@ def optimizer_steps(optimizer) -> int:
 @torch.no_grad()
 def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
                            positions: torch.Tensor, n_pairs: int, segment_size: int):
-    """How well the ensemble mean tracks the true reward, for the logs only: Pearson correlation on the stored
-    transitions at fixed relative `positions` of the buffer, and the preference accuracy against the oracle teacher
-    on `n_pairs` fresh segment pairs (never added to the dataset, never counted in the budget; ties left out). The
-    pairs come from a generator of their own: fresh every round, the same in a rerun, the training's draws unchanged."""
+    """How well the ensemble mean tracks the true reward (logs only): Pearson correlation on stored
+    transitions at fixed relative buffer `positions`; preference accuracy against the oracle on
+    `n_pairs` fresh segment pairs, never in the dataset or budget, ties left out. A generator of
+    their own makes the pairs fresh each round, the same in a rerun, training's draws unchanged."""
     device, noise = rb.obs.device, rb.noise
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(seed + global_step)
@@ -1423,9 +1472,9 @@ def input_layers(agent) -> dict:
 def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
     """The share of an input layer's absolute weight on relevant columns, and its chance level.
 
-    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features and the actions,
-    as in `relevant_active_frac`. Chance is the relevant columns' share of all columns. A zero weight adds nothing,
-    so a sparse layer counts its active weights only."""
+    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features
+    and the actions, as in `relevant_active_frac`. Chance is the relevant columns' share of all
+    columns. A zero weight adds nothing, so a sparse layer counts its active weights only."""
     column = torch.arange(weight.shape[-1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
     magnitude = weight.abs().sum(0)
@@ -1433,9 +1482,11 @@ def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) 
 
 
 def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
-    """The tags `features/{net}/relevant_weight_frac` and `features/{net}/chance` of each layer, as floats.
+    """The tags `features/{net}/relevant_weight_frac` and
+    `features/{net}/chance` of each layer, as floats.
 
-    It reads the weights only, so a run's numbers are the same with or without it. One host sync per call."""
+    It reads the weights only, so a run's numbers are the same with or without it.
+    One host sync per call."""
     values = {}
     for name, weight in layers.items():
         frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
@@ -1460,7 +1511,8 @@ if __name__ == "__main__":
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
     checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
+    # no overwrite
+    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
@@ -1481,14 +1533,17 @@ if __name__ == "__main__":
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
         critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
                                                                               target_update))
-    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
-        torch.cuda.set_stream(torch.cuda.Stream())  # stream of its own: a capture cannot involve the legacy default one
+    # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
+    if args.cuda_graph:
+        # stream of its own: a capture cannot involve the legacy default one
+        torch.cuda.set_stream(torch.cuda.Stream())
         critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
                                                                            target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
-        torch.set_num_threads(args.threads or 1)  # several runs per machine: default threads oversubscribe the cores
+        # several runs per machine: default threads oversubscribe the cores
+        torch.set_num_threads(args.threads or 1)
 
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
@@ -1503,11 +1558,11 @@ if __name__ == "__main__":
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
     queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences/
-    # the relative buffer positions of `pbrl/reward_true_corr`, fixed for the run, from a generator of their own
+    # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
     loop = Loop()
-    if preferences:  # an earlier run's labels: the first pairs of the dataset, counted in the budget
+    if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
         inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
         queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
         queries.save_round(f"{run_folder}/preferences", args.env_id, obs_dim, -1)
@@ -1546,8 +1601,9 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
-            check_finite({"action": float(env_action.sum())}, global_step)  # on the host already: no extra sync
-            physics = env.physics_state()  # of `obs`, for rendering the step again if it is ever queried
+            # on the host already: no extra sync
+            check_finite({"action": float(env_action.sum())}, global_step)
+            physics = env.physics_state()  # of `obs`, to render the step again if it is queried
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
             next_obs = torch.as_tensor(next_obs, device=device)
@@ -1569,7 +1625,7 @@ if __name__ == "__main__":
             # ALGO LOGIC: training.
             if global_step >= args.learning_starts:
                 beta = rune_beta(global_step, args.rune_beta_init, args.rune_beta_decay)  # RUNE, after pre-training only
-                if global_step < pebble_start:  # unsupervised pre-training on the state-entropy reward
+                if global_step < pebble_start:  # unsupervised pre-training, state-entropy reward
                     data = rb.sample(args.batch_size)
                     points = read_noisy(rb.obs[: rb.size], noise)
                     intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
@@ -1638,5 +1694,7 @@ if __name__ == "__main__":
     writer.close()
     if external:
         external.tell("finished", args.total_timesteps, loop.total_feedback, loop.labeled_feedback)
-    if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
-        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
+    # last: a kill before this leaves a state to resume
+    if not args.keep_state and os.path.exists(state_path):
+        # the run is complete: what it leaves is the event file and the checkpoint
+        os.remove(state_path)

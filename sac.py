@@ -1,22 +1,22 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SAC on the true reward, in an Extremely Noisy Environment: the oracle of the preference-based scripts.
+"""SAC on the true reward in an Extremely Noisy Environment: the oracle of the PbRL scripts.
 
-Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside `pebble.py` (same
-networks, update, flags and defaults, from the R2N paper's appendix; Muslimani et al., AAMAS 2025), but the replay
-buffer stores the environment's reward instead of a learned one. It is `pebble.py` with the preference learning
-deleted, so `diff sac.py pebble.py` shows only PEBBLE: reward ensemble, teacher, queries, preference buffer, episode
-store, state-entropy pre-training, feedback rounds, relabelling and the critic reset. The loop, one iteration per
-env step:
+Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018): exactly the SAC inside
+`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix; Muslimani et al.,
+AAMAS 2025), but the replay buffer stores the env's reward, not a learned one. It is `pebble.py`
+minus preference learning: `diff sac.py pebble.py` shows only PEBBLE (reward ensemble, teacher,
+queries, preference buffer, episode store, state-entropy pre-training, feedback rounds, relabelling,
+critic reset). The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then one SAC update per step on the true reward.
-Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on separate envs, true reward.
+Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-Two uses: the upper bound ("SAC with the true reward") for the PbRL curves at the same `--noise`, and, with
-`--noise 0`, the noise-free policy whose deterministic rollouts give the histograms of `--noise-type imitate`
-(`make_histograms.py`). Choices where the paper is silent: those of `pebble.py` that concern SAC (`--noise-resample`
-redraws the noise columns of replay minibatches, as ANF does; the critics bootstrap on `terminated` only);
-`make_critic` stays a function (PEBBLE resets the critic) so that the shared code is byte-identical.
+Two uses: the upper bound ("SAC with the true reward") for PbRL curves at equal `--noise`; with
+`--noise 0`, a noise-free policy whose deterministic rollouts give `--noise-type imitate` its
+histograms (`make_histograms.py`). Choices where the paper is silent, from `pebble.py`: replay
+minibatches' noise is redrawn (`--noise-resample`, like ANF). Critics bootstrap on `terminated`
+only. `make_critic` stays a function (PEBBLE resets critics) for byte-identical shared code.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -50,13 +50,13 @@ class Args:
 
     # Environment arguments
     env_id: str = "cheetah-run"
-    """the task: a dm_control one as domain-task (cheetah-run), or a gymnasium MuJoCo one (HalfCheetah-v5, Hopper-v5, ...)"""
+    """the task: dm_control as domain-task (cheetah-run), or gymnasium MuJoCo (Hopper-v5, ...)"""
     noise: float = 0.9
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
     noise_resample: bool = True
-    """redraw the noise columns of stored observations whenever they are read back (ANF's semantics)"""
+    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000
@@ -94,7 +94,8 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched; none of them changes what it learns
+    # Run settings: where the run writes, what it keeps, how it is watched.
+    # None of them changes what it learns.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -102,14 +103,18 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be used when available"""
     compile: bool = False
-    """torch.compile the SAC steps (critic, actor and temperature, target): faster on a GPU, numerics within float
-    tolerance of eager; runs with other numerics flags are never averaged or compared (analyze.py)"""
+    """torch.compile the SAC steps (critic, actor and temperature, target). Faster on a GPU.
+    Numerics are within float tolerance of eager.
+    analyze.py never averages or compares runs with other numerics flags."""
     tf32: bool = False
-    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, numerics differ from FP32"""
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
+    Faster; numerics differ from FP32."""
     cuda_graph: bool = False
-    """replay the SAC steps' gradients as CUDA graphs (a GPU only): faster, the same numbers as eager on that GPU"""
+    """replay the SAC steps' gradients as CUDA graphs (GPU only).
+    Faster; the same numbers as eager on that GPU."""
     parallel_eval: bool = False
-    """step the evaluation envs at once, each in a process of its own: faster where cores are free, the same returns"""
+    """step the evaluation envs at once, each in its own process.
+    Faster where cores are free; the same returns."""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -117,18 +122,22 @@ class Args:
     wandb_entity: Optional[str] = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`; needs the `video` extra)"""
+    """whether to capture videos of the first evaluation env (`videos/{run_name}`).
+    Needs the `video` extra."""
     save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` (at every evaluation)"""
+    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model`.
+    It is written at every evaluation."""
     threads: Optional[int] = None
-    """torch intra-op threads; unset: 1 on CPU (several runs share a machine), torch's default on GPU"""
+    """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
     """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
     run_name: Optional[str] = None
-    """the run folder `runs/{run_name}`; one holding a `state.pt` is resumed (unset: `{env_id}__{exp_name}__{seed}__{time}`)"""
+    """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
+    A folder holding a `state.pt` is resumed."""
     state_minutes: float = 10.0
-    """write the full training state `runs/{run_name}/state.pt` after the step that ends this many minutes of wall time
-    since the last one, and on SIGTERM / SIGUSR2 (a 1024-wide state is about 1 GB: keep writes rare)"""
+    """write the full training state `runs/{run_name}/state.pt` every this many wall-time minutes.
+    It is written after the step that ends the interval, and on SIGTERM / SIGUSR2.
+    A 1024-wide state is about 1 GB, so keep writes rare."""
     checkpoint_freq: Optional[int] = None
     """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
@@ -136,7 +145,8 @@ class Args:
 
 
 def validate_args(args: Args) -> None:
-    """Fail fast on bad input, before anything is written: a ValueError with one line naming the flag."""
+    """Fail fast on bad input, before anything is written:
+    a ValueError with one line naming the flag."""
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
@@ -209,20 +219,24 @@ class Actor(nn.Module):
         mean, log_std = self(obs)
         eps = torch.randn_like(mean)
         x = mean + log_std.exp() * eps
-        # the Gaussian log-density written out: torch.distributions validates its arguments, a host sync per call
+        # the Gaussian log-density written out: torch.distributions
+        # validates its arguments, a host sync per call
         log_prob = -0.5 * eps.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
-        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))  # log|d tanh(x)/dx|, numerically stable
+        # log|d tanh(x)/dx|, numerically stable
+        log_prob -= 2 * (math.log(2) - x - F.softplus(-2 * x))
         return torch.tanh(x), log_prob.sum(-1), torch.tanh(mean)
 
 
 @torch.no_grad()
 def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
-    """One deterministic episode per env, stepped in lockstep (one batched forward); returns true returns."""
+    """One deterministic episode per env, stepped in
+    lockstep (one batched forward); returns true returns."""
     obs = np.stack([env.reset()[0] for env in envs])
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         actions = actor.get_action(torch.as_tensor(obs, device=device))[2].cpu().numpy()
-        if not np.isfinite(actions).all():  # MuJoCo would raise on them: a NaN return, which stops the run
+        # MuJoCo would raise on them: a NaN return, which stops the run
+        if not np.isfinite(actions).all():
             return np.full(len(envs), np.nan)
         stepping = np.flatnonzero(running)
         for i in stepping:  # all at once when they are processes (`--parallel-eval`)
@@ -236,7 +250,8 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
 
 # ALGO LOGIC: the replay buffer, on the device
 def read_noisy(x: torch.Tensor, noise: Optional[ene.NoiseSampler]) -> torch.Tensor:
-    """Stored rows as the networks read them: with `--noise-resample`, a copy with fresh noise columns."""
+    """Stored rows as the networks read them: with
+    `--noise-resample`, a copy with fresh noise columns."""
     return x if noise is None else noise.refresh_(x.clone())
 
 
@@ -257,7 +272,8 @@ class ReplayBuffer:
         self.next_obs = torch.zeros((capacity, obs_dim), device=device)
         self.actions = torch.zeros((capacity, act_dim), device=device)
         self.rewards = torch.zeros(capacity, device=device)
-        self.true_rewards = torch.zeros(capacity, device=device)  # for diagnostics only: the agent never reads it
+        # for diagnostics only: the agent never reads it
+        self.true_rewards = torch.zeros(capacity, device=device)
         self.dones = torch.zeros(capacity, device=device)
         self.capacity, self.pos, self.size, self.noise = capacity, 0, 0, noise
 
@@ -274,10 +290,12 @@ class ReplayBuffer:
         return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
 
 
-# ALGO LOGIC: the agent, and the steps of training (top-level functions: what a captured GPU step replays)
+# ALGO LOGIC: the agent, and the steps of training
+# (top-level functions: what a captured GPU step replays)
 @dataclass
 class Agent:
-    """SAC's networks, temperature and optimisers. The critic fields are replaced when PEBBLE resets the critic."""
+    """SAC's networks, temperature and optimisers.
+    The critic fields are replaced when PEBBLE resets the critic."""
     actor: Actor
     actor_optimizer: optim.Optimizer
     qf1: SoftQNetwork
@@ -292,7 +310,8 @@ class Agent:
 
 
 def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
-    """Fresh Q1, Q2, their optimiser and targets (PEBBLE resets the critic at the first feedback round)."""
+    """Fresh Q1, Q2, their optimiser and targets (PEBBLE
+    resets the critic at the first feedback round)."""
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
@@ -314,8 +333,8 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
 
 
 def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
-    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target. Returns the losses, on the
-    device."""
+    """The gradients (`.grad`) of both critics' losses towards the soft Bellman target.
+    Returns the losses, on the device."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
         next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
@@ -329,7 +348,8 @@ def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
 
 
 def actor_gradients(agent: Agent, data: Batch) -> dict:
-    """The gradients of the actor's loss, and of the temperature's towards the target entropy. Returns the losses."""
+    """The gradients of the actor's loss, and of the temperature's towards the target entropy.
+    Returns the losses."""
     pi, log_pi, _ = agent.actor.get_action(data.obs)
     actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
     agent.actor_optimizer.zero_grad()
@@ -353,12 +373,14 @@ class Loop:
     sac_updates: int = 0
     episode_return: float = 0.0
     episode_length: int = 0
-    # resume only: the env's RNG state at the episode's start (None: the seeded first reset), and the episode's actions
-    # so far, to replay the episode on a resume
+    # resume only: the env's RNG state at the episode's start (None: the seeded first
+    # reset), and the episode's actions so far, to replay the episode on a resume
     episode_start: Optional[dict] = None
     episode_actions: list = field(default_factory=list)
-    losses: dict = field(default_factory=dict)  # the latest losses, on the device: read every `log_freq` steps
-    last_eval: dict = field(default_factory=dict)  # the last evaluation's tags: logged again after a resume's purge
+    # the latest losses, on the device: read every `log_freq` steps
+    losses: dict = field(default_factory=dict)
+    # the last evaluation's tags: logged again after a resume's purge
+    last_eval: dict = field(default_factory=dict)
 
 
 @torch.no_grad()
@@ -380,8 +402,9 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     """One SAC update: critics, then (every `actor_update_freq`) actor and temperature, then (every
     `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
 
-    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`, `actor_gradients`,
-    `target_update`) with compiled or captured versions of themselves. The optimiser steps always run eagerly."""
+    `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
+    `actor_gradients`, `target_update`) with compiled or captured versions of themselves.
+    The optimiser steps always run eagerly."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -396,7 +419,8 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
 
 
 def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: tuple):
-    """The trained networks of the `saved` objects, for evaluation and debugging (`state.pt` resumes a run)."""
+    """The trained networks of the `saved` objects, for
+    evaluation and debugging (`state.pt` resumes a run)."""
     agent = saved["agent"]
     checkpoint = {
         "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
@@ -406,16 +430,19 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop; in the PbRL scripts, the query
-# log, the label files and the reward diagnostics. The same in every script (sac.py, anf_sac.py: a subset); tested.
+# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
+# in the PbRL scripts, the query log, the label files and the reward diagnostics.
+# The same in every script (sac.py, anf_sac.py: a subset); tested.
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name. If a run that started in the same
-    second took that folder (runs of a sweep differ in noise or budget, which the name does not show), try the next."""
+    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
+    If a run that started in the same second took that folder (runs of a sweep
+    differ in noise or budget, which the name does not show), try the next."""
     unix_time = int(time.time())
     while True:
         run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
         try:
-            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets the folder
+            # atomic: exactly one of two racing runs gets the folder
+            os.makedirs(f"runs/{run_name}")
             return run_name
         except FileExistsError:
             unix_time += 1
@@ -423,11 +450,12 @@ def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
 
 
 class Progress:
-    """A console line at every phase change and at most every `interval` seconds of training: step / total, phase,
-    SPS since the last line, ETA at that rate, feedback used and the latest evaluation return. Its clock is the
-    run's training time (`seconds`, waits for labels excluded), and it reads host values only, so it adds no host
-    sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)` at every step: the labelling
-    page's status of a run that a person labels."""
+    """A console line at every phase change and at most every `interval` seconds of
+    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
+    used and the latest evaluation return. Its clock is the run's training time
+    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
+    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
+    at every step: the labelling page's status of a run that a person labels."""
 
     def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
         self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
@@ -455,13 +483,14 @@ class Progress:
 
 
 class CudaGraph:
-    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of hundreds of small kernels
-    from Python. Tensor inputs (a `Batch`'s too) are copied into the graph's own before each replay; other inputs are
-    fixed. The first calls run eagerly on a side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the
-    capture), the next is captured, later ones replay it and return the same output tensors, overwritten. A graph reads
-    the tensors it was captured with: when the agent's networks or optimisers are replaced (PEBBLE's critic reset), a
-    fixed input changes, its `signature` changes or a `.grad` it writes is replaced, it is captured again. A change of
-    device stops the run."""
+    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of
+    hundreds of small kernels from Python. Tensor inputs (a `Batch`'s too) are copied into the
+    graph's own before each replay; other inputs are fixed. The first calls run eagerly on a
+    side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the capture), the next
+    is captured, later ones replay it and return the same output tensors, overwritten. A graph
+    reads the tensors it was captured with: when the agent's networks or optimisers are
+    replaced (PEBBLE's critic reset), a fixed input changes, its `signature` changes or a
+    `.grad` it writes is replaced, it is captured again. A change of device stops the run."""
     warmup_calls = 2
 
     def __init__(self, step):
@@ -480,8 +509,8 @@ class CudaGraph:
 
     @staticmethod
     def tf32() -> tuple:
-        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per backend, and there the older flags raise
-        once the newer ones are set."""
+        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
+        backend, and there the older flags raise once the newer ones are set."""
         if hasattr(torch.backends, "fp32_precision"):
             return (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision,
                     torch.backends.cudnn.rnn.fp32_precision)
@@ -490,8 +519,9 @@ class CudaGraph:
 
     @staticmethod
     def signature(inputs, parameters: list) -> tuple:
-        """What a graph depends on besides tensor values: the inputs' shapes and dtypes, the devices, each parameter's
-        `requires_grad` and storage, the TF32 settings. It reads host attributes only, so a call adds no sync."""
+        """What a graph depends on besides tensor values: the inputs' shapes and dtypes,
+        the devices, each parameter's `requires_grad` and storage, the TF32 settings.
+        It reads host attributes only, so a call adds no sync."""
         tensors = CudaGraph.tensors(inputs)
         return (tuple((t.shape, t.dtype) for t in tensors), frozenset(t.device for t in tensors + parameters),
                 tuple((p.requires_grad, p.data_ptr()) for p in parameters), CudaGraph.tf32())
@@ -500,15 +530,17 @@ class CudaGraph:
         """Whether the graph must be captured again; raises where a new capture would be wrong."""
         objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
         replaced = not self.agent_objects or any(a is not b for a, b in zip(objects, self.agent_objects))
-        params = self.parameters(agent) if replaced else self.params  # listing them is slow: once per agent
+        # listing them is slow: once per agent
+        params = self.parameters(agent) if replaced else self.params
         signature = self.signature(inputs, params)
         # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
         if self.seen is not None and signature[1] != self.seen[1]:
             old, new = (", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1]))
             raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {old} and is now called on {new}; "
                                "a CUDA graph replays on one device")
-        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture records what eager now runs.
-        # A replaced `.grad` (zero_grad's None): a replay would write the old one, which the optimiser no longer reads.
+        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
+        # records what eager now runs. A replaced `.grad` (zero_grad's None): a
+        # replay would write the old one, which the optimiser no longer reads.
         stale = replaced or fixed != self.fixed or signature != self.seen or any(p.grad is not g for p, g in self.grads)
         if stale:  # held here, the replaced objects keep their ids: no false match
             self.agent_objects, self.fixed, self.params, self.seen, self.grads = objects, fixed, params, signature, []
@@ -532,7 +564,8 @@ class CudaGraph:
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
                 self.outputs = self.step(agent, *self.inputs)
-            # Only the `.grad` tensors the capture created or added to: another step's may change freely.
+            # Only the `.grad` tensors the capture created
+            # or added to: another step's may change freely.
             self.grads = [(p, p.grad) for p, g, v in before if p.grad is not g or (g is not None and g._version != v)]
             self.graph = graph  # only once captured: a failed capture is never replayed
         elif self.tensors(inputs):
@@ -548,7 +581,8 @@ RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_enti
 
 
 def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name` names a folder holding a `state.pt` (else None)."""
+    """The run folder, and the saved state when `--run-name`
+    names a folder holding a `state.pt` (else None)."""
     if args.run_name is None:
         return make_run_folder(args.env_id, args.exp_name, args.seed), None
     path = f"runs/{args.run_name}/state.pt"
@@ -559,13 +593,15 @@ def open_run(args) -> tuple:
         os.makedirs(f"runs/{args.run_name}")
         return args.run_name, None
     try:
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)  # our own file: not only tensors
+        # our own file: not only tensors
+        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
     except Exception as e:  # not a state file, or a truncated one
         raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
     if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
         raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
                          "it with that version (git checkout 88b95d9)")
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}  # a flag added since: its default
+    # a flag added since: its default
+    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
     changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
                if name not in RESUMABLE_FLAGS and saved[name] != value]
     if changed:
@@ -575,7 +611,8 @@ def open_run(args) -> tuple:
 
 
 def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename it: a kill during the write leaves the last state."""
+    """Write a temporary file, flush it to disk, then rename
+    it: a kill during the write leaves the last state."""
     with open(f"{path}.tmp", "wb") as f:
         torch.save(state, f)
         f.flush()
@@ -583,15 +620,16 @@ def save_atomically(state: dict, path: str):
     os.replace(f"{path}.tmp", path)
 
 
-PLAIN = (int, float, list, dict, deque, type(None))  # a dataclass's fields of these types are saved as they are
+# a dataclass's fields of these types are saved as they are
+PLAIN = (int, float, list, dict, deque, type(None))
 
 
 def state_of(obj):
     """What `state.pt` keeps of an object.
 
-    That is a tensor itself, a sparse optimizer's inner state with its masks and counters, `obj.state_dict()`, a
-    dataclass field by field, a buffer's stored rows (`stored_rows`), or for another plain object (episode store,
-    statistics) its tensors and numbers."""
+    That is a tensor itself, a sparse optimizer's inner state with its masks and counters,
+    `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
+    or for another plain object (episode store, statistics) its tensors and numbers."""
     if isinstance(obj, torch.Tensor):
         return obj.detach()
     if hasattr(obj, "masks"):  # the weights are saved with their networks
@@ -608,10 +646,11 @@ def state_of(obj):
 
 
 def stored_rows(buffer) -> dict:
-    """A buffer's numbers and the first `size` rows of its tensors: a slice alone would save the whole preallocation.
+    """A buffer's numbers and the first `size` rows of its
+    tensors: a slice alone would save the whole preallocation.
 
-    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`, that is at episode ends and in the
-    newest row. The comparison is bitwise."""
+    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`,
+    that is at episode ends and in the newest row. The comparison is bitwise."""
     n = buffer.size
     state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
     state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
@@ -627,7 +666,8 @@ def load_stored_rows_(buffer, state: dict):
     """Restore what `stored_rows` saved, in place."""
     for name, rows in state["rows"].items():
         full = getattr(buffer, name)
-        if full.shape[1:] != rows.shape[1:]:  # a buffer that allocates its rows at the first add (SURF's segments)
+        # a buffer that allocates its rows at the first add (SURF's segments)
+        if full.shape[1:] != rows.shape[1:]:
             full = full.new_zeros((len(full), *rows.shape[1:]))
             setattr(buffer, name, full)
         full[: len(rows)] = rows
@@ -652,7 +692,8 @@ def load_state_(obj, state):
         vars(obj).update(state["counters"])
     elif hasattr(obj, "load_state_dict"):
         obj.load_state_dict(state)
-    elif dataclasses.is_dataclass(obj):  # what `state_of` saved as it was is set, the rest restored in place
+    # what `state_of` saved as it was is set, the rest restored in place
+    elif dataclasses.is_dataclass(obj):
         for name, value in state.items():
             if isinstance(getattr(obj, name), PLAIN):
                 setattr(obj, name, value)
@@ -669,7 +710,8 @@ def load_state_(obj, state):
 
 
 def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's (and the GPU's on one); the envs keep their own."""
+    """The global generators: python's, numpy's, torch's
+    (and the GPU's on one); the envs keep their own."""
     cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
     return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
 
@@ -684,8 +726,8 @@ def set_rng_states(states: dict, device: torch.device):
 
 
 def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
-    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the points the interrupted one
-    logged after its state (TensorBoard's purge_step)."""
+    """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the
+    points the interrupted one logged after its state (TensorBoard's purge_step)."""
     if args.track:
         import wandb
 
@@ -699,8 +741,8 @@ def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
 
 
 def catch_stop_signals() -> list:
-    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the returned list; the loop then
-    saves the state at the end of its step and exits."""
+    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the
+    returned list; the loop then saves the state at the end of its step and exits."""
     stop_signals = []
     for signum in (signal.SIGTERM, signal.SIGUSR2):
         signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
@@ -708,11 +750,13 @@ def catch_stop_signals() -> list:
 
 
 class Stopped(Exception):
-    """SIGTERM or SIGUSR2: the state is saved; the run exits with exit code 1 and one line saying how to resume."""
+    """SIGTERM or SIGUSR2: the state is saved; the run exits
+    with exit code 1 and one line saying how to resume."""
 
 
 class NonFinite(Exception):
-    """A non-finite value: the run writes its checkpoint and stops with exit code 1 and one line naming it."""
+    """A non-finite value: the run writes its checkpoint
+    and stops with exit code 1 and one line naming it."""
 
 
 def check_finite(values: dict, step: int):
@@ -723,10 +767,11 @@ def check_finite(values: dict, step: int):
 
 def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
                device: torch.device, envs: list, writer: SummaryWriter):
-    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`: the `saved`
-    objects, the generators, the envs' generators and the observation to act on."""
+    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
+    the `saved` objects, the generators, the envs' generators and the observation to act on."""
     started = time.time()
-    writer.flush()  # the points up to this step are on disk before a state that a resume purges back to
+    # the points up to this step are on disk before a state that a resume purges back to
+    writer.flush()
     save_atomically({
         "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
         "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
@@ -737,8 +782,9 @@ def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Ten
 
 
 def state_due(global_step: int, args, last_state: float) -> bool:
-    """Whether `state.pt` is written after this step: `state_minutes` after the last one (`last_state`, from
-    `time.monotonic`), or every `checkpoint_freq` steps if set; at the last step only with `keep_state`."""
+    """Whether `state.pt` is written after this step: `state_minutes` after the
+    last one (`last_state`, from `time.monotonic`), or every `checkpoint_freq`
+    steps if set; at the last step only with `keep_state`."""
     if global_step + 1 == args.total_timesteps:
         return args.keep_state
     if args.checkpoint_freq is not None:
@@ -748,8 +794,9 @@ def state_due(global_step: int, args, last_state: float) -> bool:
 
 def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
                 progress: Progress, state_path: str) -> tuple:
-    """Start, or continue from the saved state: restore the `saved` objects, replay the running episode on `envs[0]`
-    to where the saved run was, then restore the generators. Returns (observation, first step, seconds trained)."""
+    """Start, or continue from the saved state: restore the `saved` objects, replay the
+    running episode on `envs[0]` to where the saved run was, then restore the generators.
+    Returns (observation, first step, seconds trained)."""
     loop = saved["loop"]
     if resume is not None:
         for name, obj in saved.items():
@@ -765,7 +812,8 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
         print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
               "the run continues, not bitwise as uninterrupted", flush=True)
     start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
-    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:  # the purge hid the step's evaluation
+    # the purge hid the step's evaluation
+    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
         for tag, value in loop.last_eval.items():
             writer.add_scalar(tag, value, start_step)
     progress.eval_return = loop.last_eval.get("eval/episodic_return")
@@ -781,9 +829,9 @@ def input_layers(agent) -> dict:
 def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
     """The share of an input layer's absolute weight on relevant columns, and its chance level.
 
-    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features and the actions,
-    as in `relevant_active_frac`. Chance is the relevant columns' share of all columns. A zero weight adds nothing,
-    so a sparse layer counts its active weights only."""
+    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features
+    and the actions, as in `relevant_active_frac`. Chance is the relevant columns' share of all
+    columns. A zero weight adds nothing, so a sparse layer counts its active weights only."""
     column = torch.arange(weight.shape[-1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
     magnitude = weight.abs().sum(0)
@@ -791,9 +839,11 @@ def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) 
 
 
 def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
-    """The tags `features/{net}/relevant_weight_frac` and `features/{net}/chance` of each layer, as floats.
+    """The tags `features/{net}/relevant_weight_frac` and
+    `features/{net}/chance` of each layer, as floats.
 
-    It reads the weights only, so a run's numbers are the same with or without it. One host sync per call."""
+    It reads the weights only, so a run's numbers are the same with or without it.
+    One host sync per call."""
     values = {}
     for name, weight in layers.items():
         frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
@@ -812,7 +862,8 @@ if __name__ == "__main__":
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
     checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")  # no overwrite
+    # no overwrite
+    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
@@ -833,14 +884,17 @@ if __name__ == "__main__":
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
         critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
                                                                               target_update))
-    if args.cuda_graph:  # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
-        torch.cuda.set_stream(torch.cuda.Stream())  # stream of its own: a capture cannot involve the legacy default one
+    # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
+    if args.cuda_graph:
+        # stream of its own: a capture cannot involve the legacy default one
+        torch.cuda.set_stream(torch.cuda.Stream())
         critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
                                                                            target_update))
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
-        torch.set_num_threads(args.threads or 1)  # several runs per machine: default threads oversubscribe the cores
+        # several runs per machine: default threads oversubscribe the cores
+        torch.set_num_threads(args.threads or 1)
 
     obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
@@ -871,7 +925,8 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
-            check_finite({"action": float(env_action.sum())}, global_step)  # on the host already: no extra sync
+            # on the host already: no extra sync
+            check_finite({"action": float(env_action.sum())}, global_step)
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
             next_obs = torch.as_tensor(next_obs, device=device)
@@ -933,5 +988,7 @@ if __name__ == "__main__":
     for eval_env in eval_envs:
         eval_env.close()
     writer.close()
-    if not args.keep_state and os.path.exists(state_path):  # last: a kill before this leaves a state to resume
-        os.remove(state_path)  # the run is complete: what it leaves is the event file and the checkpoint
+    # last: a kill before this leaves a state to resume
+    if not args.keep_state and os.path.exists(state_path):
+        # the run is complete: what it leaves is the event file and the checkpoint
+        os.remove(state_path)
