@@ -8,6 +8,7 @@ turned into a hyphen; a slug seen before in the same file gets -1, -2, ... Expli
 import glob
 import os
 import re
+import subprocess
 from urllib.parse import unquote
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -174,3 +175,24 @@ def test_a_broken_link_or_anchor_is_found(tmp_path):
         "README.md:10: docs/missing.svg: no such file or folder docs/missing.svg",
         "README.md:11: docs/also-missing.md: no such file or folder docs/also-missing.md",
     ]
+
+
+def changed_lines(a: str, b: str) -> int:
+    """`diff -u A B | grep -E '^[+-]' | grep -vE '^(\\+\\+\\+|---) ' | wc -l`, the count the docs pages give."""
+    lines = subprocess.run(["diff", "-u", a, b], cwd=ROOT, capture_output=True, text=True).stdout.splitlines()
+    return sum(1 for line in lines if line[:1] in "+-" and not line.startswith(("+++ ", "--- ")))
+
+
+def test_the_diff_sizes_the_docs_give_are_the_files():
+    """Each docs page's "N changed lines" for its ablation (the `diff A B` block above it, or a `diff A B` in the same
+    sentence) is what the files give today."""
+    claims = []
+    for page in sorted(glob.glob(os.path.join(ROOT, "docs", "*.md"))):
+        text = open(page).read()
+        for match in re.finditer(r"```bash\ndiff (\S+\.py) (\S+\.py)\n```\n\n(?:[^\n]*?)(\d+) changed lines", text):
+            claims.append((page, match.group(1), match.group(2), int(match.group(3))))
+        for match in re.finditer(r"`diff (\S+\.py) (\S+\.py)`[^.]*?\((\d+) changed lines", text):
+            claims.append((page, match.group(1), match.group(2), int(match.group(3))))
+    assert len(claims) >= 12, claims
+    wrong = [(os.path.basename(page), a, b, n, changed_lines(a, b)) for page, a, b, n in claims if changed_lines(a, b) != n]
+    assert not wrong, wrong
