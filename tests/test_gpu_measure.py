@@ -114,5 +114,5 @@ def test_items_of_a_tiny_run_on_the_cpu(tmp_path):
     assert rows["act"]["gpu_us_mean"] == "nan"  # no GPU: host times only
     parts = [r for name, r in rows.items() if name not in ("sac_update (all)", "step (whole)")]
     leaves = sum(float(r["share_of_step"]) for r in parts)
-    assert leaves == pytest.approx(1.0, abs=0.02)
+    assert leaves == pytest.approx(1.0, abs=0.002)  # each share is written to 4 places
     assert "# evaluate: 1 calls" in text  # the one at the end, after the window

@@ -302,7 +302,9 @@ def write_items(timers: Timers, out: str):
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         for r in rows:
-            writer.writerow({k: round(v, 2) if isinstance(v, float) else v for k, v in r.items()})
+            # Shares to 4 places: a dozen rounded to 2 can sum to 1.02.
+            writer.writerow({k: round(v, 4 if k == "share_of_step" else 2) if isinstance(v, float) else v
+                             for k, v in r.items()})
         f.write(f"# {len(timers.step_seconds)} plain steps from {timers.first} to {timers.last} "
                 f"({timers.skipped_steps} left out: an evaluation, feedback round or state write); "
                 f"GPU timing: {timers.cuda}\n")
