@@ -2,10 +2,6 @@
 that normally ends its episodes when the body falls (Hopper-v5), with the noise appended, and exact resume after a
 SIGKILL on Hopper-v5."""
 import math
-import os
-import random
-import signal
-import time
 
 import pytest
 import torch
@@ -83,13 +79,7 @@ def test_killed_at_a_random_moment_resumes_exactly_on_a_gymnasium_task(tmp_path,
     script = "pebble.py"
     monkeypatch.setitem(test_resume.ARGS, script, args_of(script, "Hopper-v5") + RESUME)
     window = test_resume.training_time_after_first_state(script, tmp_path, "reference")
-    process = test_resume.start(script, tmp_path, "killed")
-    test_resume.wait_for(tmp_path / "runs" / "killed" / "state.pt", process)
-    delay = random.uniform(0.0, 0.7 * window)
-    time.sleep(delay)  # not a wait for anything: the kill comes at a random moment of the stretch with a state
-    assert os.path.exists(tmp_path / "runs" / "killed" / "state.pt"), f"the run finished within {delay:.2f} s"
-    process.send_signal(signal.SIGKILL)
-    process.communicate()
+    test_resume.kill_at_a_random_moment(script, tmp_path, "killed", window)
     stdout, _ = test_resume.run(script, tmp_path, "killed")
     assert "resuming runs/killed/state.pt at step" in stdout
     test_resume.assert_same_run(script, tmp_path / "runs" / "reference", tmp_path / "runs" / "killed", [200, 400])

@@ -112,24 +112,29 @@ def training_time_after_first_state(script, cwd, run_name):
     return seconds
 
 
-@pytest.mark.parametrize("script", list(ARGS))
-def test_killed_at_a_random_moment_resumes_exactly(script, tmp_path):
-    window = training_time_after_first_state(script, tmp_path, "reference")
-    folder = tmp_path / "runs" / "killed"
+def kill_at_a_random_moment(script, cwd, run_name, window):
+    """Start the run and SIGKILL it at a random moment of its first `window` seconds with a state.
+    A kill that comes after the run ended leaves no state: the run starts again, with the draw
+    inside the time that run took (under load a run can be faster than the reference)."""
+    folder = cwd / "runs" / run_name
     for _ in range(5):
-        process = start(script, tmp_path, "killed")
+        process = start(script, cwd, run_name)
         wait_for(folder / "state.pt", process)
         delay = random.uniform(0.0, 0.7 * window)
-        time.sleep(delay)
+        time.sleep(delay)  # not a wait for anything: the kill comes at a random moment
         process.send_signal(signal.SIGKILL)
         process.communicate()
         if os.path.exists(folder / "state.pt"):
-            break
-        # The run was faster than the reference and ended before the kill: draw again inside the time it took.
+            return
         shutil.rmtree(folder)
         window = delay
-    else:
-        pytest.fail(f"{script}: five runs ended before a kill inside their stretch: lengthen the run")
+    pytest.fail(f"{script}: five runs ended before a kill inside their stretch: lengthen the run")
+
+
+@pytest.mark.parametrize("script", list(ARGS))
+def test_killed_at_a_random_moment_resumes_exactly(script, tmp_path):
+    window = training_time_after_first_state(script, tmp_path, "reference")
+    kill_at_a_random_moment(script, tmp_path, "killed", window)
     stdout, _ = run(script, tmp_path, "killed")  # the same command again
     resumed_at = int(re.search(r"resuming runs/killed/state\.pt at step (\d+)", stdout).group(1))
     saved = re.search(r"state saved after step \d+: \d+\.\d\d GB in \d+\.\d s", stdout)
