@@ -1252,6 +1252,20 @@ def test_stored_noise_scripts_reproduce_the_protocol_and_wait_for_every_run(tmp_
     assert f"achieved, H1 (the stored arms' pooled SD): SD {pooled:.1f}." in achieved, achieved
 
 
+def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
+    """`bash results/stored-noise/analyze.sh` reads no test before the 22 primary runs are in: with 21 it stops with
+    one line saying how many are in, and writes nothing."""
+    for seed in range(21):
+        (tmp_path / "results" / "stored-noise" / "runs" / f"run{seed}").mkdir(parents=True)
+        (tmp_path / "results" / "stored-noise" / "runs" / f"run{seed}" / "done").write_text("exit code 0\n")
+    result = subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
+                            capture_output=True, text=True)
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        "results/stored-noise/analyze.sh: 21 of the 22 primary runs are in; the protocol reads no test before"]
+    assert not (tmp_path / "results" / "stored-noise" / "analysis").exists()
+
+
 @pytest.mark.parametrize("log_dirs, output_dir, baseline, baseline_for", [
     (("results/cheetah-study",), "results/cheetah-study/analysis", "pebble",
      ("r2n_pebble=pebble", "sac=sac", "anf_sac=sac")),

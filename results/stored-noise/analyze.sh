@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Regenerates every table, curve and connectivity figure of the stored-noise study and prints H2's test and the power
+# achieved: the commands of PROTOCOL.md ("Analysis commands"), in its order. It refuses until all 22 primary runs
+# are in (the protocol reads no test before); the probes' descriptive table comes once their 9 runs are in.
+# Run from the repository root: bash results/stored-noise/analyze.sh
+set -euo pipefail
+landed=$(ls results/stored-noise/runs/*/done 2>/dev/null | wc -l)
+if [ "$landed" -ne 22 ]; then
+    echo "results/stored-noise/analyze.sh: $landed of the 22 primary runs are in; the protocol reads no test before" >&2
+    exit 1
+fi
+python analyze.py --log-dirs results/stored-noise/runs --output-dir results/stored-noise/analysis --primary-last 3 \
+    --baseline-for r2n_pebble_stored_noise=pebble_stored_noise sac_stored_noise=sac_stored_noise \
+    anf_sac_stored_noise=sac_stored_noise
+python results/stored-noise/interaction.py
+python results/stored-noise/power.py --achieved
+probes=$(ls results/stored-noise/probes/*/done 2>/dev/null | wc -l)
+if [ "$probes" -eq 9 ]; then
+    python analyze.py --log-dirs results/cheetah-study results/stored-noise/probes \
+        --output-dir results/stored-noise/analysis-probes --primary-last 3
+else
+    echo "the probes: $probes of 9 runs are in; their table comes when all are"
+fi
