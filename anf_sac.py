@@ -184,8 +184,10 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"--agent-sparsity must be in [0, 1), got {args.agent_sparsity}")
     if not 0.0 <= args.agent_drop_fraction <= 1.0:
         raise ValueError(f"--agent-drop-fraction must be in [0, 1], got {args.agent_drop_fraction}")
-    for flag in ("agent_topology_period", "episode_length", "eval_freq",
-                 "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
+    for flag in (
+        "agent_topology_period", "episode_length", "eval_freq",
+        "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -318,7 +320,8 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
     """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
-    mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
+    active = scores.topk(n - math.floor(sparsity * n), dim=-1).indices
+    mask = torch.zeros_like(scores).scatter_(-1, active, 1.0)
     return mask.view(shape)
 
 
@@ -330,8 +333,8 @@ def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
-                 moments: list) -> None:
+def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor,
+                 drop_fraction: float, moments: list) -> None:
     """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|. Grow as many
     where the dense gradient is largest among positions not kept (a just-dropped one may regrow).
     Grown weights and dropped or grown positions' Adam `moments` are zeroed; counts never change."""
@@ -356,11 +359,13 @@ class SparseOptimizer:
     Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
     exactly 0) and re-applies them. Every `period` steps: RigL with that step's dense gradient."""
 
-    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
+    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float,
+                 drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
         self.drop_fraction, self.period, self.steps = drop_fraction, period, 0
         self.topology_updates = 0
-        self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
+        self.masks = {name: random_mask(weight.shape, sparsity, weight.device)
+                      for name, weight in layers.items()}
         with torch.no_grad():
             for name, weight in layers.items():
                 weight.mul_(self.masks[name])
@@ -374,7 +379,8 @@ class SparseOptimizer:
         self.steps += 1
         update_topology = self.steps % self.period == 0
         self.topology_updates += update_topology
-        dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
+        dense_grads = ({name: weight.grad.clone() for name, weight in self.layers.items()}
+                       if update_topology else {})
         for name, weight in self.layers.items():
             weight.grad.mul_(self.masks[name])
         self.optimizer.step()
@@ -389,7 +395,8 @@ class SparseOptimizer:
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
-            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
+            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)]
+                        if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
@@ -432,7 +439,8 @@ def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) ->
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr)
     q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
-                                  args.agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)
+                                  args.agent_sparsity, args.agent_drop_fraction,
+                                  args.agent_topology_period)
     qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf1_target.load_state_dict(qf1.state_dict())
@@ -443,7 +451,8 @@ def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) ->
 def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> Agent:
     actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
     actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
-    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight}, args.agent_sparsity,
+    actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight},
+                                      args.agent_sparsity,
                                       args.agent_drop_fraction, args.agent_topology_period)
     qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
@@ -1173,7 +1182,8 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC", time.time() - start_time)
+            phase = "random" if global_step < args.learning_starts else "SAC"
+            progress.update(global_step, phase, time.time() - start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()
@@ -1226,9 +1236,13 @@ if __name__ == "__main__":
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f}",
-                      flush=True)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
+                                          global_step + 1)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -267,9 +267,11 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     if not 0.0 <= args.dropconnect_p < 1.0:
         raise ValueError(f"--dropconnect-p must be in [0, 1), got {args.dropconnect_p}")
-    for flag in ("episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq", "eval_freq",
-                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq",
-                 "diagnostic_transitions", "diagnostic_pairs"):
+    for flag in (
+        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
+        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
+        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -1802,8 +1804,13 @@ if __name__ == "__main__":
                 for e, weight in enumerate(reward_model.weights[0]):
                     for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                         writer.add_scalar(f"sparse/reward{e}/{tag}", value.item(), global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f} "
-                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f} "
+                    f"feedback={loop.total_feedback}/{args.max_feedback} "
+                    f"labels={loop.labeled_feedback}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -164,8 +164,10 @@ def validate_args(args: Args) -> None:
         raise ValueError(
             f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
         )
-    for flag in ("episode_length", "eval_freq",
-                 "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq"):
+    for flag in (
+        "episode_length", "eval_freq",
+        "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -1054,7 +1056,8 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            progress.update(global_step, "random" if global_step < args.learning_starts else "SAC", time.time() - start_time)
+            phase = "random" if global_step < args.learning_starts else "SAC"
+            progress.update(global_step, phase, time.time() - start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()
@@ -1103,8 +1106,11 @@ if __name__ == "__main__":
                 loop.last_eval |= weight_shares(input_layers(agent), obs_dim_real, obs_dim)
                 for tag, value in loop.last_eval.items():
                     writer.add_scalar(tag, value, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f}",
-                      flush=True)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -283,14 +283,18 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     for flag in ("reward_sparsity", "agent_sparsity"):
         if not 0.0 <= getattr(args, flag) < 1.0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}")
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}"
+            )
     for flag in ("reward_drop_fraction", "agent_drop_fraction"):
         if not 0.0 <= getattr(args, flag) <= 1.0:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
-    for flag in ("reward_topology_period", "agent_topology_period", "episode_length", "ensemble_size", "reward_layers",
-                 "reward_epochs", "feedback_freq", "eval_freq",
-                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq",
-                 "diagnostic_transitions", "diagnostic_pairs"):
+    for flag in (
+        "reward_topology_period", "agent_topology_period",
+        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
+        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
+        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -627,7 +631,8 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
     """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
-    mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
+    active = scores.topk(n - math.floor(sparsity * n), dim=-1).indices
+    mask = torch.zeros_like(scores).scatter_(-1, active, 1.0)
     return mask.view(shape)
 
 
@@ -639,8 +644,8 @@ def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def set_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
-                moments: list) -> None:
+def set_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor,
+                drop_fraction: float, moments: list) -> None:
     """SET, per matrix: drop the floor(d * n_active) active weights of smallest |w|. Grow as many
     uniformly at random among positions not kept (a just-dropped one may regrow; gradient unused).
     Grown weights and dropped or grown positions' Adam `moments` are zeroed; counts never change."""
@@ -665,11 +670,13 @@ class SparseOptimizer:
     Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
     exactly 0) and re-applies them. Every `period` steps: a SET update (random regrowth)."""
 
-    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
+    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float,
+                 drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
         self.drop_fraction, self.period, self.steps = drop_fraction, period, 0
         self.topology_updates = 0
-        self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
+        self.masks = {name: random_mask(weight.shape, sparsity, weight.device)
+                      for name, weight in layers.items()}
         with torch.no_grad():
             for name, weight in layers.items():
                 weight.mul_(self.masks[name])
@@ -683,7 +690,8 @@ class SparseOptimizer:
         self.steps += 1
         update_topology = self.steps % self.period == 0
         self.topology_updates += update_topology
-        dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
+        dense_grads = ({name: weight.grad.clone() for name, weight in self.layers.items()}
+                       if update_topology else {})
         for name, weight in self.layers.items():
             weight.grad.mul_(self.masks[name])
         self.optimizer.step()
@@ -698,7 +706,8 @@ class SparseOptimizer:
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
-            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
+            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)]
+                        if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
@@ -754,8 +763,8 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
     actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
     actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
     actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight},
-                                      args.agent_sparsity if args.sparse_agent else 0.0, args.agent_drop_fraction,
-                                      args.agent_topology_period)
+                                      args.agent_sparsity if args.sparse_agent else 0.0,
+                                      args.agent_drop_fraction, args.agent_topology_period)
     qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
     a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
@@ -926,7 +935,8 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
         "log_alpha": agent.log_alpha.detach().cpu(),
         **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)),
         "reward_models": saved["reward_model"].member_state_dicts(),
-        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved) for name, mask in opt.named_matrices(opt.masks)},
+        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved)
+                  for name, mask in opt.named_matrices(opt.masks)},
     }
     torch.save(checkpoint, path)
 
@@ -1795,8 +1805,8 @@ if __name__ == "__main__":
     reward_model = reward_model.to(device)
     reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr)
     reward_optimizer = SparseOptimizer(reward_optimizer, {"reward": reward_model.weights[0]},
-                                       args.reward_sparsity if args.sparse_reward else 0.0, args.reward_drop_fraction,
-                                       args.reward_topology_period)
+                                       args.reward_sparsity if args.sparse_reward else 0.0,
+                                       args.reward_drop_fraction, args.reward_topology_period)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
@@ -1912,9 +1922,15 @@ if __name__ == "__main__":
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f} "
-                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
+                                          global_step + 1)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f} "
+                    f"feedback={loop.total_feedback}/{args.max_feedback} "
+                    f"labels={loop.labeled_feedback}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:

@@ -275,10 +275,14 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     for flag in ("reward_sparsity", "agent_sparsity"):
         if not 0.0 <= getattr(args, flag) < 1.0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}")
-    for flag in ("episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq", "eval_freq",
-                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq",
-                 "diagnostic_transitions", "diagnostic_pairs"):
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}"
+            )
+    for flag in (
+        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
+        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
+        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -615,7 +619,8 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
     """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
-    mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
+    active = scores.topk(n - math.floor(sparsity * n), dim=-1).indices
+    mask = torch.zeros_like(scores).scatter_(-1, active, 1.0)
     return mask.view(shape)
 
 
@@ -627,7 +632,8 @@ class SparseOptimizer:
     def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
         self.topology_updates = 0
-        self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
+        self.masks = {name: random_mask(weight.shape, sparsity, weight.device)
+                      for name, weight in layers.items()}
         with torch.no_grad():
             for name, weight in layers.items():
                 weight.mul_(self.masks[name])
@@ -648,7 +654,8 @@ class SparseOptimizer:
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
-            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
+            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)]
+                        if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
@@ -875,7 +882,8 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
         "log_alpha": agent.log_alpha.detach().cpu(),
         **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)),
         "reward_models": saved["reward_model"].member_state_dicts(),
-        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved) for name, mask in opt.named_matrices(opt.masks)},
+        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved)
+                  for name, mask in opt.named_matrices(opt.masks)},
     }
     torch.save(checkpoint, path)
 
@@ -1860,9 +1868,15 @@ if __name__ == "__main__":
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f} "
-                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
+                                          global_step + 1)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f} "
+                    f"feedback={loop.total_feedback}/{args.max_feedback} "
+                    f"labels={loop.labeled_feedback}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:
