@@ -439,7 +439,8 @@ class ReplayBuffer:
         idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
         obs = read_noisy(self.obs[idx], self.noise)
         next_obs = read_noisy(self.next_obs[idx], self.noise)
-        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx, self.stds[idx])
+        return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx,
+                     self.stds[idx])
 
     @torch.no_grad()
     def relabel(self, reward_fn, chunk: int):
@@ -884,7 +885,8 @@ def store(
     reward_model: RewardEnsemble, episodes: EpisodeStore, physics: np.ndarray,
 ):
     """Write one step into the run's storage, with the reward the agent learns from."""
-    predicted_reward, predicted_std = reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))
+    inputs = torch.cat([obs, action]).unsqueeze(0)
+    predicted_reward, predicted_std = reward_model.mean_reward(inputs)
     rb.add(obs, action, next_obs, terminated, true_reward,
            predicted_reward[0], predicted_std[0])  # never the true reward
     episodes.add(obs, action, true_reward, physics)
@@ -1916,7 +1918,8 @@ if __name__ == "__main__":
 
             # ALGO LOGIC: training.
             if global_step >= args.learning_starts:
-                beta = rune_beta(global_step, args.rune_beta_init, args.rune_beta_decay)  # RUNE, after pre-training only
+                # RUNE, after pre-training only
+                beta = rune_beta(global_step, args.rune_beta_init, args.rune_beta_decay)
                 if global_step < pebble_start:  # unsupervised pre-training, state-entropy reward
                     data = rb.sample(args.batch_size)
                     points = read_noisy(rb.obs[: rb.size], noise)

@@ -302,11 +302,14 @@ def validate_args(args: Args) -> None:
             f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
         )
     if not 0 <= args.surf_crop < args.segment_size:
-        raise ValueError(f"--surf-crop must be in [0, --segment-size {args.segment_size}), got {args.surf_crop}")
+        raise ValueError(
+            f"--surf-crop must be in [0, --segment-size {args.segment_size}), got {args.surf_crop}"
+        )
     if args.segment_size + 2 * args.surf_crop > args.episode_length:
         raise ValueError(
             f"--surf-crop {args.surf_crop}: stored segments of --segment-size + 2 * --surf-crop = "
-            f"{args.segment_size + 2 * args.surf_crop} steps exceed an episode (--episode-length {args.episode_length})"
+            f"{args.segment_size + 2 * args.surf_crop} steps exceed an episode "
+            f"(--episode-length {args.episode_length})"
         )
     if args.surf_unlabeled_ratio < 0:
         raise ValueError(f"--surf-unlabeled-ratio must be >= 0, got {args.surf_unlabeled_ratio}")
@@ -509,11 +512,13 @@ class EpisodeStore:
 
 
 class PreferenceBuffer:
-    """Segment pairs `(n, 2, S, obs+act)` with y = P[segment 1 preferred] in {0, 0.5, 1} (unused for unlabelled pairs).
-    SURF stores S = H + 2 * crop steps, the teacher's H = `segment_size` in the middle; S is that of the first pairs added."""
+    """Segment pairs `(n, 2, S, obs+act)` with y = P[segment 1 preferred] in {0, 0.5, 1}
+    (unused for unlabelled pairs). SURF stores S = H + 2 * crop steps, the teacher's
+    H = `segment_size` in the middle; S is that of the first pairs added."""
 
     def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device, noise=None):
-        self.segments = torch.zeros((capacity, 2, 0, input_dim), device=device)  # steps allocated at the first add
+        # steps allocated at the first add
+        self.segments = torch.zeros((capacity, 2, 0, input_dim), device=device)
         self.labels = torch.zeros(capacity, device=device)
         self.size, self.noise, self.segment_size = 0, noise, segment_size
 
@@ -566,11 +571,16 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
     return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
 
 
-def temporal_crop(shape: tuple, stored: int, segment_size: int, crop: int, device: torch.device) -> torch.Tensor:
+def temporal_crop(
+    shape: tuple, stored: int, segment_size: int, crop: int, device: torch.device
+) -> torch.Tensor:
     """SURF's temporal crop of pairs of `stored`-step segments as a 0/1 step mask (*shape, 2,
     stored). One length per pair in segment_size +- crop; independent start offsets per segment."""
-    lengths = torch.randint(segment_size - crop, segment_size + crop + 1, (*shape, 1, 1), device=device)
-    starts = (torch.rand((*shape, 2, 1), device=device) * (stored - lengths + 1)).long()  # uniform in [0, stored - L]
+    lengths = torch.randint(
+        segment_size - crop, segment_size + crop + 1, (*shape, 1, 1), device=device
+    )
+    # uniform in [0, stored - L]
+    starts = (torch.rand((*shape, 2, 1), device=device) * (stored - lengths + 1)).long()
     steps = torch.arange(stored, device=device)
     return ((steps >= starts) & (steps < starts + lengths)).float()
 
@@ -582,7 +592,9 @@ def pseudo_labels(returns: torch.Tensor, tau: float):
     return preferred.float(), confidence >= tau
 
 
-def pseudo_label_loss(returns: torch.Tensor, targets: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+def pseudo_label_loss(
+    returns: torch.Tensor, targets: torch.Tensor, kept: torch.Tensor
+) -> torch.Tensor:
     """SURF's unlabelled loss per member: cross-entropy of returns (E, B, 2) with pseudo-labels
     (E, B) where kept, averaged over the whole minibatch (unkept pairs count 0, FixMatch style)."""
     log_probs = F.log_softmax(returns, dim=-1)
@@ -603,28 +615,36 @@ def member_minibatches(n: int, members: int, batch_size: int, device: torch.devi
             yield order[:, start : start + batch_size]
 
 
-def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unlabeled: PreferenceBuffer, batch_size: int,
-                 epochs: int, crop: int, tau: float, lam: float, mu: int):
+def train_reward(
+    model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, unlabeled: PreferenceBuffer,
+    batch_size: int, epochs: int, crop: int, tau: float, lam: float, mu: int,
+):
     """A SURF reward round, per member: `surf_iterations` steps of the Bradley-Terry loss on cropped
     labelled pairs plus `lam` x the pseudo-label loss on `mu * batch_size` cropped unlabelled pairs.
     Returns mean member loss and accuracy (last pass over labels), epochs, pseudo-labelled share."""
     n, members, device = prefs.size, model.ensemble_size, prefs.labels.device
-    central, iterations = slice(crop, crop + prefs.segment_size), surf_iterations(n, epochs, batch_size)
+    central = slice(crop, crop + prefs.segment_size)
+    iterations = surf_iterations(n, epochs, batch_size)
     labeled_batches = member_minibatches(n, members, batch_size, device)
-    unlabeled_batches = member_minibatches(unlabeled.size, members, batch_size * mu, device) if unlabeled.size else None
+    unlabeled_batches = (member_minibatches(unlabeled.size, members, batch_size * mu, device)
+                         if unlabeled.size else None)
     loss_sum, correct, strict, seen, kept, pseudo = torch.zeros(6, device=device)
     pairs = 0
     for iteration in range(iterations):
         segments, labels = prefs.read(next(labeled_batches))  # (E, B, 2, S, D), (E, B)
         rewards = model(segments.flatten(1, 3)).view(*segments.shape[:4])  # per step, (E, B, 2, S)
-        returns = (rewards * temporal_crop(labels.shape, segments.shape[3], prefs.segment_size, crop, device)).sum(-1)
+        crops = temporal_crop(labels.shape, segments.shape[3], prefs.segment_size, crop, device)
+        returns = (rewards * crops).sum(-1)
         member_losses = preference_loss(returns, labels)
         unlabeled_losses = torch.zeros_like(member_losses)
         if unlabeled_batches is not None:
             segments_u, _ = unlabeled.read(next(unlabeled_batches))
             rewards_u = model(segments_u.flatten(1, 3)).view(*segments_u.shape[:4])
-            targets, confident = pseudo_labels(rewards_u[..., central].detach().sum(-1), tau)  # uncropped central steps
-            crops_u = temporal_crop(targets.shape, segments_u.shape[3], prefs.segment_size, crop, device)
+            # uncropped central steps
+            targets, confident = pseudo_labels(rewards_u[..., central].detach().sum(-1), tau)
+            crops_u = temporal_crop(
+                targets.shape, segments_u.shape[3], prefs.segment_size, crop, device
+            )
             unlabeled_losses = pseudo_label_loss((rewards_u * crops_u).sum(-1), targets, confident)
             kept, pseudo = kept + confident.sum(), pseudo + confident.numel()
         optimizer.zero_grad()
@@ -670,7 +690,9 @@ def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, s
     if sampling == "uniform":
         return store.sample_segments(n_queries, segment_size + 2 * crop, with_physics)
     stored = segment_size + 2 * crop
-    segments, true_rewards, *physics = store.sample_segments(n_queries * pool_multiplier, stored, with_physics)
+    segments, true_rewards, *physics = store.sample_segments(
+        n_queries * pool_multiplier, stored, with_physics
+    )
     inputs = read_noisy(segments[:, :, crop : crop + segment_size], noise)
     returns = model(inputs.flatten(0, 2)).view(model.ensemble_size, *inputs.shape[:3]).sum(-1)
     p = returns.softmax(-1)[..., 1]  # each member's P[segment 1 preferred], (E, pool)
@@ -989,8 +1011,8 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     )
     central = slice(args.surf_crop, args.surf_crop + args.segment_size)  # what the teacher sees
     keep, labels, sha256, waited = ask_teacher(
-        external, queries.next_round, args, loop, obs_dim, segments[:, :, central], true_rewards[:, :, central],
-        physics[:, :, central], global_step,
+        external, queries.next_round, args, loop, obs_dim,
+        segments[:, :, central], true_rewards[:, :, central], physics[:, :, central], global_step,
     )
     log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards, physics,
                 torch.where(keep, labels, torch.nan), global_step, sha256)
@@ -998,11 +1020,13 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     unlabeled_segments, _ = episodes.sample_segments(
         n_queries * args.surf_unlabeled_ratio, args.segment_size + 2 * args.surf_crop
     )
-    unlabeled.add(unlabeled_segments, torch.zeros(len(unlabeled_segments), device=unlabeled_segments.device))
+    no_labels = torch.zeros(len(unlabeled_segments), device=unlabeled_segments.device)
+    unlabeled.add(unlabeled_segments, no_labels)
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
     if prefs.size:  # a round may yield no label at all (skipping teacher)
         loss, accuracy, epochs, pseudo_label_rate = train_reward(
-            reward_model, reward_optimizer, prefs, unlabeled, args.reward_batch_size, args.reward_epochs,
+            reward_model, reward_optimizer, prefs, unlabeled,
+            args.reward_batch_size, args.reward_epochs,
             args.surf_crop, args.surf_tau, args.surf_lambda, args.surf_mu,
         )
         writer.add_scalar("pbrl/reward_loss", loss, global_step)
@@ -1847,7 +1871,8 @@ if __name__ == "__main__":
         )
         input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
         preferences = args.preferences and load_preferences(
-            args.preferences, args.env_id, input_dim, args.segment_size + 2 * args.surf_crop, args.max_feedback
+            args.preferences, args.env_id, input_dim,
+            args.segment_size + 2 * args.surf_crop, args.max_feedback,
         )
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
         if resume and args.teacher == "external":
@@ -1913,10 +1938,12 @@ if __name__ == "__main__":
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
-    unlabeled = PreferenceBuffer(args.max_feedback * args.surf_unlabeled_ratio, args.segment_size, obs_dim + act_dim,
-                                 device, noise)  # SURF's unlabelled pairs, labels unused
+    # SURF's unlabelled pairs, labels unused
+    unlabeled = PreferenceBuffer(args.max_feedback * args.surf_unlabeled_ratio, args.segment_size,
+                                 obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
-    queries = QueryLog(args.segment_size + 2 * args.surf_crop, obs_dim + act_dim, len(env.physics_state()))  # preferences/
+    stored_steps = args.segment_size + 2 * args.surf_crop
+    queries = QueryLog(stored_steps, obs_dim + act_dim, len(env.physics_state()))  # preferences/
     # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
     diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
