@@ -522,8 +522,8 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
     return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
 
 
-def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int, max_epochs: int,
-                 stop_accuracy: float):
+def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int,
+                 max_epochs: int, stop_accuracy: float):
     """One round of reward learning on all labels. Returns (mean member loss, accuracy, epochs)."""
     n, members = prefs.size, model.ensemble_size
     for epoch in range(1, max_epochs + 1):
@@ -546,8 +546,8 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batc
     return loss_sum.item() / (n * members), accuracy, epoch
 
 
-def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float, eps_skip: float,
-            eps_equal: float):
+def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float,
+            eps_skip: float, eps_equal: float):
     """B-Pref's simulated teacher on true per-step rewards (n, H). Returns (kept pairs mask, labels in {0, 0.5, 1})."""
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
     keep = torch.ones_like(returns0, dtype=torch.bool)
@@ -568,8 +568,8 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
 
 
 @torch.no_grad()
-def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
-                   pool_multiplier: int, noise=None, with_physics: bool = False):
+def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int,
+                   sampling: str, pool_multiplier: int, noise=None, with_physics: bool = False):
     """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement /
     entropy). With `with_physics`, also their physics states."""
     if sampling == "uniform":
@@ -786,14 +786,14 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     noise, obs_dim = rb.noise, rb.obs.shape[1]
     n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
     segments, true_rewards, physics = select_queries(
-        reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
-        with_physics=True,
+        reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier,
+        noise, with_physics=True,
     )
     keep, labels, sha256, waited = ask_teacher(
         external, queries.next_round, args, loop, obs_dim, segments, true_rewards, physics, global_step,
     )
-    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards, physics,
-                torch.where(keep, labels, torch.nan), global_step, sha256)
+    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards,
+                physics, torch.where(keep, labels, torch.nan), global_step, sha256)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
     if prefs.size:  # a round may yield no label at all (skipping teacher)
@@ -1432,8 +1432,8 @@ class ExternalTeacher:
 
     def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
         """Write `teacher.json`: what the labelling page shows."""
-        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked, labelled=labelled,
-                        step=step, message=message))
+        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
+                        labelled=labelled, step=step, message=message))
 
     def training(self, step: int, seconds: float):
         """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
@@ -1530,8 +1530,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
     With an external teacher, a person or a program answers through files (labelling by hand).
     Else B-Pref's simulated teacher answers from the segments' true rewards."""
     if external and len(segments):
-        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics, step,
-                            loop.total_feedback, loop.labeled_feedback)
+        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics,
+                            step, loop.total_feedback, loop.labeled_feedback)
     margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
     keep, labels = teacher(
         true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
@@ -1545,19 +1545,19 @@ def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, seg
     """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
     Labels are NaN where skipped."""
     round_index = queries.next_round
-    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), round_index, step,
-                sha256)
+    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(),
+                round_index, step, sha256)
     queries.save_round(folder, env_id, obs_dim, round_index)
 
 
-def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
-              episodes, diagnostic_positions: torch.Tensor):
+def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module,
+              reward_optimizer, rb, episodes, diagnostic_positions: torch.Tensor):
     """The tags of a feedback round: feedback counts, reward optimiser steps, reward diagnostics."""
     writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
     writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
     writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
-    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
-                           args.diagnostic_pairs, args.segment_size)
+    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes,
+                           diagnostic_positions, args.diagnostic_pairs, args.segment_size)
 
 
 def optimizer_steps(optimizer) -> int:
@@ -1567,8 +1567,8 @@ def optimizer_steps(optimizer) -> int:
 
 
 @torch.no_grad()
-def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
-                           positions: torch.Tensor, n_pairs: int, segment_size: int):
+def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb,
+                           store, positions: torch.Tensor, n_pairs: int, segment_size: int):
     """How well the ensemble mean tracks the true reward (logs only): Pearson correlation on stored
     transitions at fixed relative buffer `positions`; preference accuracy against the oracle on
     `n_pairs` fresh segment pairs, never in the dataset or budget, ties left out. A generator of
