@@ -271,7 +271,9 @@ def validate_args(args: Args) -> None:
             f"(--episode-length {args.episode_length}): the first feedback round cuts segments from complete episodes"
         )
     if args.buffer_size < args.batch_size:
-        raise ValueError(f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}")
+        raise ValueError(
+            f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
+        )
     if not 0.0 < args.teacher_gamma <= 1.0:
         raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
     for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
@@ -279,14 +281,18 @@ def validate_args(args: Args) -> None:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     for flag in ("reward_sparsity", "agent_sparsity"):
         if not 0.0 <= getattr(args, flag) < 1.0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}")
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}"
+            )
     for flag in ("reward_drop_fraction", "agent_drop_fraction"):
         if not 0.0 <= getattr(args, flag) <= 1.0:
             raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
-    for flag in ("reward_topology_period", "agent_topology_period", "episode_length", "ensemble_size", "reward_layers",
-                 "reward_epochs", "feedback_freq", "eval_freq",
-                 "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq", "target_update_freq",
-                 "diagnostic_transitions", "diagnostic_pairs"):
+    for flag in (
+        "reward_topology_period", "agent_topology_period",
+        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
+        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
+        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+    ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
 
@@ -409,7 +415,8 @@ class ReplayBuffer:
 
     def sample(self, batch_size: int) -> Batch:
         idx = torch.randint(0, self.size, (batch_size,), device=self.obs.device)
-        obs, next_obs = read_noisy(self.obs[idx], self.noise), read_noisy(self.next_obs[idx], self.noise)
+        obs = read_noisy(self.obs[idx], self.noise)
+        next_obs = read_noisy(self.next_obs[idx], self.noise)
         return Batch(obs, self.actions[idx], self.rewards[idx], next_obs, self.dones[idx], idx)
 
     @torch.no_grad()
@@ -514,8 +521,8 @@ def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor
     return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
 
 
-def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int, max_epochs: int,
-                 stop_accuracy: float):
+def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batch_size: int,
+                 max_epochs: int, stop_accuracy: float):
     """One round of reward learning on all labels. Returns (mean member loss, accuracy, epochs)."""
     n, members = prefs.size, model.ensemble_size
     for epoch in range(1, max_epochs + 1):
@@ -538,8 +545,8 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batc
     return loss_sum.item() / (n * members), accuracy, epoch
 
 
-def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float, eps_skip: float,
-            eps_equal: float):
+def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float,
+            eps_skip: float, eps_equal: float):
     """B-Pref's simulated teacher on true per-step rewards (n, H). Returns (kept pairs mask, labels in {0, 0.5, 1})."""
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
     keep = torch.ones_like(returns0, dtype=torch.bool)
@@ -560,8 +567,8 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
 
 
 @torch.no_grad()
-def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int, sampling: str,
-                   pool_multiplier: int, noise=None, with_physics: bool = False):
+def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int,
+                   sampling: str, pool_multiplier: int, noise=None, with_physics: bool = False):
     """Segment pairs to ask about: uniform, or the most uncertain of a larger pool (disagreement /
     entropy). With `with_physics`, also their physics states."""
     if sampling == "uniform":
@@ -622,7 +629,8 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
     """0/1 mask with N - floor(sparsity * N) active per matrix (last two dims), drawn uniformly."""
     n = shape[-2] * shape[-1]
     scores = torch.rand(*shape[:-2], n, device=device)
-    mask = torch.zeros_like(scores).scatter_(-1, scores.topk(n - math.floor(sparsity * n), dim=-1).indices, 1.0)
+    active = scores.topk(n - math.floor(sparsity * n), dim=-1).indices
+    mask = torch.zeros_like(scores).scatter_(-1, active, 1.0)
     return mask.view(shape)
 
 
@@ -634,8 +642,8 @@ def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor, drop_fraction: float,
-                 moments: list) -> None:
+def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Tensor,
+                 drop_fraction: float, moments: list) -> None:
     """RigL, per matrix: drop the floor(d * n_active) active weights of smallest |w|. Grow as many
     where the dense gradient is largest among positions not kept (a just-dropped one may regrow).
     Grown weights and dropped or grown positions' Adam `moments` are zeroed; counts never change."""
@@ -660,11 +668,13 @@ class SparseOptimizer:
     Each step masks the gradients (Adam moments stay 0 where the mask is 0, so masked weights stay
     exactly 0) and re-applies them. Every `period` steps: RigL with that step's dense gradient."""
 
-    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float, drop_fraction: float, period: int):
+    def __init__(self, optimizer: optim.Optimizer, layers: dict, sparsity: float,
+                 drop_fraction: float, period: int):
         self.optimizer, self.layers, self.sparsity = optimizer, layers, sparsity
         self.drop_fraction, self.period, self.steps = drop_fraction, period, 0
         self.topology_updates = 0
-        self.masks = {name: random_mask(weight.shape, sparsity, weight.device) for name, weight in layers.items()}
+        self.masks = {name: random_mask(weight.shape, sparsity, weight.device)
+                      for name, weight in layers.items()}
         with torch.no_grad():
             for name, weight in layers.items():
                 weight.mul_(self.masks[name])
@@ -678,7 +688,8 @@ class SparseOptimizer:
         self.steps += 1
         update_topology = self.steps % self.period == 0
         self.topology_updates += update_topology
-        dense_grads = {name: weight.grad.clone() for name, weight in self.layers.items()} if update_topology else {}
+        dense_grads = ({name: weight.grad.clone() for name, weight in self.layers.items()}
+                       if update_topology else {})
         for name, weight in self.layers.items():
             weight.grad.mul_(self.masks[name])
         self.optimizer.step()
@@ -693,7 +704,8 @@ class SparseOptimizer:
     def named_matrices(self, tensors: dict):
         """(name, matrix) per sparse matrix; a stacked `reward` gives `reward0`, `reward1`, ..."""
         for name, tensor in tensors.items():
-            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)] if tensor.dim() == 3 else [(name, tensor)])
+            yield from ([(f"{name}{i}", t) for i, t in enumerate(tensor)]
+                        if tensor.dim() == 3 else [(name, tensor)])
 
 
 @torch.no_grad()
@@ -749,8 +761,8 @@ def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> 
     actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
     actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr)
     actor_optimizer = SparseOptimizer(actor_optimizer, {"actor": actor.net[0].weight},
-                                      args.agent_sparsity if args.sparse_agent else 0.0, args.agent_drop_fraction,
-                                      args.agent_topology_period)
+                                      args.agent_sparsity if args.sparse_agent else 0.0,
+                                      args.agent_drop_fraction, args.agent_topology_period)
     qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
     a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
@@ -763,21 +775,33 @@ def critic_gradients(agent: Agent, data: Batch, gamma: float) -> dict:
     Returns the losses, on the device."""
     with torch.no_grad():
         next_actions, next_log_pi, _ = agent.actor.get_action(data.next_obs)
-        next_q = torch.min(agent.qf1_target(data.next_obs, next_actions), agent.qf2_target(data.next_obs, next_actions))
+        qf1_next_target = agent.qf1_target(data.next_obs, next_actions)
+        qf2_next_target = agent.qf2_target(data.next_obs, next_actions)
+        next_q = torch.min(qf1_next_target, qf2_next_target)
         target_q = data.rewards + (1 - data.dones) * gamma * (next_q - agent.alpha * next_log_pi)
-    qf1_values, qf2_values = agent.qf1(data.obs, data.actions), agent.qf2(data.obs, data.actions)
-    qf1_loss, qf2_loss = F.mse_loss(qf1_values, target_q), F.mse_loss(qf2_values, target_q)
+    qf1_values = agent.qf1(data.obs, data.actions)
+    qf2_values = agent.qf2(data.obs, data.actions)
+    qf1_loss = F.mse_loss(qf1_values, target_q)
+    qf2_loss = F.mse_loss(qf2_values, target_q)
     agent.q_optimizer.zero_grad()
     (qf1_loss + qf2_loss).backward()
-    return dict(qf1_values=qf1_values.mean().detach(), qf2_values=qf2_values.mean().detach(),
-                qf1_loss=qf1_loss.detach(), qf2_loss=qf2_loss.detach(), qf_loss=(qf1_loss + qf2_loss).detach() / 2)
+    return dict(
+        qf1_values=qf1_values.mean().detach(),
+        qf2_values=qf2_values.mean().detach(),
+        qf1_loss=qf1_loss.detach(),
+        qf2_loss=qf2_loss.detach(),
+        qf_loss=(qf1_loss + qf2_loss).detach() / 2,
+    )
 
 
 def actor_gradients(agent: Agent, data: Batch) -> dict:
     """The gradients of the actor's loss, and of the temperature's towards the target entropy.
     Returns the losses."""
     pi, log_pi, _ = agent.actor.get_action(data.obs)
-    actor_loss = (agent.alpha * log_pi - torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))).mean()
+    qf1_pi = agent.qf1(data.obs, pi)
+    qf2_pi = agent.qf2(data.obs, pi)
+    min_qf_pi = torch.min(qf1_pi, qf2_pi)
+    actor_loss = (agent.alpha * log_pi - min_qf_pi).mean()
     agent.actor_optimizer.zero_grad()
     actor_loss.backward()
     alpha_loss = (-agent.log_alpha.exp() * (log_pi.detach() + agent.target_entropy)).mean()
@@ -790,7 +814,8 @@ def actor_gradients(agent: Agent, data: Batch) -> dict:
 def target_update(agent: Agent, tau: float):
     """Polyak averaging of the target critics."""
     online = list(agent.qf1.parameters()) + list(agent.qf2.parameters())
-    torch._foreach_lerp_(list(agent.qf1_target.parameters()) + list(agent.qf2_target.parameters()), online, tau)
+    targets = list(agent.qf1_target.parameters()) + list(agent.qf2_target.parameters())
+    torch._foreach_lerp_(targets, online, tau)
 
 
 @dataclass
@@ -844,7 +869,11 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
         agent.actor_optimizer.step()
         agent.a_optimizer.step()
         agent.alpha.copy_(agent.log_alpha.detach().exp())
-        loop.losses.update(actor_loss=losses["actor_loss"], alpha=agent.alpha.clone(), alpha_loss=losses["alpha_loss"])
+        loop.losses.update(
+            actor_loss=losses["actor_loss"],
+            alpha=agent.alpha.clone(),
+            alpha_loss=losses["alpha_loss"],
+        )
     if loop.sac_updates % args.target_update_freq == 0:
         target_update(agent, args.tau)
 
@@ -858,14 +887,14 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, rewa
     noise, obs_dim = rb.noise, rb.obs.shape[1]
     n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
     segments, true_rewards, physics = select_queries(
-        reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier, noise,
-        with_physics=True,
+        reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier,
+        noise, with_physics=True,
     )
     keep, labels, sha256, waited = ask_teacher(
         external, queries.next_round, args, loop, obs_dim, segments, true_rewards, physics, global_step,
     )
-    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards, physics,
-                torch.where(keep, labels, torch.nan), global_step, sha256)
+    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards,
+                physics, torch.where(keep, labels, torch.nan), global_step, sha256)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
     if prefs.size:  # a round may yield no label at all (skipping teacher)
@@ -900,9 +929,12 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     agent = saved["agent"]
     checkpoint = {
         "args": vars(args), "global_step": global_step + 1, "actor": agent.actor.state_dict(),
-        "qf1": agent.qf1.state_dict(), "qf2": agent.qf2.state_dict(), "log_alpha": agent.log_alpha.detach().cpu(),
-        **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)), "reward_models": saved["reward_model"].member_state_dicts(),
-        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved) for name, mask in opt.named_matrices(opt.masks)},
+        "qf1": agent.qf1.state_dict(), "qf2": agent.qf2.state_dict(),
+        "log_alpha": agent.log_alpha.detach().cpu(),
+        **dict(zip(("obs_dim_real", "obs_dim", "act_dim"), dims)),
+        "reward_models": saved["reward_model"].member_state_dicts(),
+        "masks": {name: mask.cpu() for opt in sparse_optimizers(saved)
+                  for name, mask in opt.named_matrices(opt.masks)},
     }
     torch.save(checkpoint, path)
 
@@ -934,8 +966,13 @@ class Progress:
     host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
     at every step: the labelling page's status of a run that a person labels."""
 
-    def __init__(self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None):
-        self.total_steps, self.budget, self.interval, self.on_step = total_steps, budget, interval, on_step
+    def __init__(
+        self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None
+    ):
+        self.total_steps = total_steps
+        self.budget = budget
+        self.interval = interval
+        self.on_step = on_step
         self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
 
     def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
@@ -944,9 +981,12 @@ class Progress:
         now = seconds
         if phase == self.phase and now - self.time < self.interval:
             return
-        sps = (step - self.step) / (now - self.time) if step > self.step and now > self.time else 0.0
-        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%) | {phase} | "
-        line += f"{sps:.0f} SPS | ETA {self.duration((self.total_steps - step) / sps) if sps else '?'}"
+        moved = step > self.step and now > self.time
+        sps = (step - self.step) / (now - self.time) if moved else 0.0
+        percent = 100 * step / self.total_steps
+        line = f"progress: step {step}/{self.total_steps} ({percent:.0f}%) | {phase} | "
+        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
+        line += f"{sps:.0f} SPS | ETA {eta}"
         if self.budget is not None:
             line += f" | feedback {feedback}/{self.budget}"
         line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
@@ -956,7 +996,11 @@ class Progress:
     @staticmethod
     def duration(seconds: float) -> str:
         minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return f"{hours // 24}d{hours % 24:02d}h" if hours >= 24 else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m"
+        return (
+            f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
+            else f"{hours}h{minutes:02d}m" if hours
+            else f"{minutes}m"
+        )
 
 
 class CudaGraph:
@@ -976,23 +1020,41 @@ class CudaGraph:
 
     @staticmethod
     def tensors(inputs) -> list:
-        return [t for x in inputs for t in (x if isinstance(x, tuple) else [x]) if isinstance(t, torch.Tensor)]
+        return [
+            t
+            for x in inputs
+            for t in (x if isinstance(x, tuple) else [x])
+            if isinstance(t, torch.Tensor)
+        ]
 
     @staticmethod
     def parameters(agent) -> list:
         """The agent's networks' parameters and its own tensors (the temperature)."""
-        return [p for x in vars(agent).values()
-                for p in (x.parameters() if isinstance(x, nn.Module) else [x] if isinstance(x, torch.Tensor) else [])]
+        return [
+            p
+            for x in vars(agent).values()
+            for p in (
+                x.parameters() if isinstance(x, nn.Module)
+                else [x] if isinstance(x, torch.Tensor)
+                else []
+            )
+        ]
 
     @staticmethod
     def tf32() -> tuple:
         """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
         backend, and there the older flags raise once the newer ones are set."""
         if hasattr(torch.backends, "fp32_precision"):
-            return (torch.backends.cuda.matmul.fp32_precision, torch.backends.cudnn.conv.fp32_precision,
-                    torch.backends.cudnn.rnn.fp32_precision)
-        return (torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32,
-                torch.get_float32_matmul_precision())
+            return (
+                torch.backends.cuda.matmul.fp32_precision,
+                torch.backends.cudnn.conv.fp32_precision,
+                torch.backends.cudnn.rnn.fp32_precision,
+            )
+        return (
+            torch.backends.cuda.matmul.allow_tf32,
+            torch.backends.cudnn.allow_tf32,
+            torch.get_float32_matmul_precision(),
+        )
 
     @staticmethod
     def signature(inputs, parameters: list) -> tuple:
@@ -1000,27 +1062,45 @@ class CudaGraph:
         the devices, each parameter's `requires_grad` and storage, the TF32 settings.
         It reads host attributes only, so a call adds no sync."""
         tensors = CudaGraph.tensors(inputs)
-        return (tuple((t.shape, t.dtype) for t in tensors), frozenset(t.device for t in tensors + parameters),
-                tuple((p.requires_grad, p.data_ptr()) for p in parameters), CudaGraph.tf32())
+        return (
+            tuple((t.shape, t.dtype) for t in tensors),
+            frozenset(t.device for t in tensors + parameters),
+            tuple((p.requires_grad, p.data_ptr()) for p in parameters),
+            CudaGraph.tf32(),
+        )
 
     def stale(self, agent, inputs) -> bool:
         """Whether the graph must be captured again; raises where a new capture would be wrong."""
-        objects, fixed = list(vars(agent).values()), [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
-        replaced = not self.agent_objects or any(a is not b for a, b in zip(objects, self.agent_objects))
+        objects = list(vars(agent).values())
+        fixed = [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
+        replaced = not self.agent_objects or any(
+            a is not b for a, b in zip(objects, self.agent_objects)
+        )
         # listing them is slow: once per agent
         params = self.parameters(agent) if replaced else self.params
         signature = self.signature(inputs, params)
         # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
         if self.seen is not None and signature[1] != self.seen[1]:
-            old, new = (", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1]))
-            raise RuntimeError(f"--cuda-graph: {self.step.__name__} was captured on {old} and is now called on {new}; "
-                               "a CUDA graph replays on one device")
+            old, new = (
+                ", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1])
+            )
+            raise RuntimeError(
+                f"--cuda-graph: {self.step.__name__} was captured on {old} "
+                f"and is now called on {new}; a CUDA graph replays on one device"
+            )
         # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
         # records what eager now runs. A replaced `.grad` (zero_grad's None): a
         # replay would write the old one, which the optimiser no longer reads.
-        stale = replaced or fixed != self.fixed or signature != self.seen or any(p.grad is not g for p, g in self.grads)
+        stale = (
+            replaced or fixed != self.fixed or signature != self.seen
+            or any(p.grad is not g for p, g in self.grads)
+        )
         if stale:  # held here, the replaced objects keep their ids: no false match
-            self.agent_objects, self.fixed, self.params, self.seen, self.grads = objects, fixed, params, signature, []
+            self.agent_objects = objects
+            self.fixed = fixed
+            self.params = params
+            self.seen = signature
+            self.grads = []
         return stale
 
     def __call__(self, agent, *inputs):
@@ -1043,7 +1123,11 @@ class CudaGraph:
                 self.outputs = self.step(agent, *self.inputs)
             # Only the `.grad` tensors the capture created
             # or added to: another step's may change freely.
-            self.grads = [(p, p.grad) for p, g, v in before if p.grad is not g or (g is not None and g._version != v)]
+            self.grads = [
+                (p, p.grad)
+                for p, g, v in before
+                if p.grad is not g or (g is not None and g._version != v)
+            ]
             self.graph = graph  # only once captured: a failed capture is never replayed
         elif self.tensors(inputs):
             torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
@@ -1053,8 +1137,10 @@ class CudaGraph:
 
 # the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
 # the flags a resume may change, and no others: none of them touches training
-RESUMABLE_FLAGS = ("threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-                   "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval")
+RESUMABLE_FLAGS = (
+    "threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
+    "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval",
+)
 
 
 def open_run(args) -> tuple:
@@ -1065,25 +1151,38 @@ def open_run(args) -> tuple:
     path = f"runs/{args.run_name}/state.pt"
     if not os.path.exists(path):
         if os.path.exists(f"runs/{args.run_name}"):
-            raise ValueError(f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume (the run "
-                             "finished, or stopped before its first state); choose another name or move the folder")
+            raise ValueError(
+                f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume "
+                "(the run finished, or stopped before its first state); "
+                "choose another name or move the folder"
+            )
         os.makedirs(f"runs/{args.run_name}")
         return args.run_name, None
     try:
         # our own file: not only tensors
         state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
     except Exception as e:  # not a state file, or a truncated one
-        raise ValueError(f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})") from None
+        raise ValueError(
+            f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})"
+        ) from None
     if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
-        raise ValueError(f"--run-name {args.run_name}: {path} was written by an older version of this script; resume "
-                         "it with that version (git checkout 88b95d9)")
+        raise ValueError(
+            f"--run-name {args.run_name}: {path} was written by an older version of this script; "
+            "resume it with that version (git checkout 88b95d9)"
+        )
     # a flag added since: its default
     saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
-    changed = [f"--{name.replace('_', '-')} {saved[name]} (now {value})" for name, value in vars(args).items()
-               if name not in RESUMABLE_FLAGS and saved[name] != value]
+    changed = [
+        f"--{name.replace('_', '-')} {saved[name]} (now {value})"
+        for name, value in vars(args).items()
+        if name not in RESUMABLE_FLAGS and saved[name] != value
+    ]
     if changed:
-        raise ValueError(f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; a resume may "
-                         f"change only --{', --'.join(flag.replace('_', '-') for flag in RESUMABLE_FLAGS)}")
+        resumable = ", --".join(flag.replace("_", "-") for flag in RESUMABLE_FLAGS)
+        raise ValueError(
+            f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; "
+            f"a resume may change only --{resumable}"
+        )
     return args.run_name, state
 
 
@@ -1119,7 +1218,11 @@ def state_of(obj):
                 for name, value in vars(obj).items()}
     if hasattr(obj, "size"):
         return stored_rows(obj)
-    return {name: value for name, value in vars(obj).items() if isinstance(value, (torch.Tensor, np.ndarray, int, float))}
+    return {
+        name: value
+        for name, value in vars(obj).items()
+        if isinstance(value, (torch.Tensor, np.ndarray, int, float))
+    }
 
 
 def stored_rows(buffer) -> dict:
@@ -1130,12 +1233,17 @@ def stored_rows(buffer) -> dict:
     that is at episode ends and in the newest row. The comparison is bitwise."""
     n = buffer.size
     state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
-    state["rows"] = {name: x[:n] if n == len(x) else x[:n].clone()
-                     for name, x in vars(buffer).items() if isinstance(x, torch.Tensor) and name != "next_obs"}
+    state["rows"] = {
+        name: x[:n] if n == len(x) else x[:n].clone()
+        for name, x in vars(buffer).items()
+        if isinstance(x, torch.Tensor) and name != "next_obs"
+    }
     if hasattr(buffer, "next_obs"):
         own = torch.ones(n, dtype=torch.bool, device=buffer.obs.device)
-        own[:-1] = (buffer.next_obs[: n - 1].view(torch.int32) != buffer.obs[1:n].view(torch.int32)).any(1)
-        state["own_next_obs"], state["next_obs"] = own, buffer.next_obs[:n][own]
+        next_bits = buffer.next_obs[: n - 1].view(torch.int32)
+        own[:-1] = (next_bits != buffer.obs[1:n].view(torch.int32)).any(1)
+        state["own_next_obs"] = own
+        state["next_obs"] = buffer.next_obs[:n][own]
     return state
 
 
@@ -1190,7 +1298,12 @@ def rng_states(device: torch.device) -> dict:
     """The global generators: python's, numpy's, torch's
     (and the GPU's on one); the envs keep their own."""
     cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state(), "cuda": cuda}
+    return {
+        "python": random.getstate(),
+        "numpy": np.random.get_state(),
+        "torch": torch.get_rng_state(),
+        "cuda": cuda,
+    }
 
 
 def set_rng_states(states: dict, device: torch.device):
@@ -1208,8 +1321,17 @@ def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
     if args.track:
         import wandb
 
-        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity, sync_tensorboard=True, config=vars(args),
-                   name=run_name, id=run_name, resume="allow", monitor_gym=True, save_code=True)
+        wandb.init(
+            project=args.wandb_project_name,
+            entity=args.wandb_entity,
+            sync_tensorboard=True,
+            config=vars(args),
+            name=run_name,
+            id=run_name,
+            resume="allow",
+            monitor_gym=True,
+            save_code=True,
+        )
     writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
     if resume is None:
         table = "\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])
@@ -1222,7 +1344,9 @@ def catch_stop_signals() -> list:
     returned list; the loop then saves the state at the end of its step and exits."""
     stop_signals = []
     for signum in (signal.SIGTERM, signal.SIGUSR2):
-        signal.signal(signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name))
+        signal.signal(
+            signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name)
+        )
     return stop_signals
 
 
@@ -1269,8 +1393,10 @@ def state_due(global_step: int, args, last_state: float) -> bool:
     return time.monotonic() - last_state >= 60 * args.state_minutes
 
 
-def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: torch.device, writer: SummaryWriter,
-                progress: Progress, state_path: str) -> tuple:
+def restore_run(
+    resume: Optional[dict], saved: dict, envs: list, args, device: torch.device,
+    writer: SummaryWriter, progress: Progress, state_path: str,
+) -> tuple:
     """Start, or continue from the saved state: restore the `saved` objects, replay the
     running episode on `envs[0]` to where the saved run was, then restore the generators.
     Returns (observation, first step, seconds trained)."""
@@ -1286,9 +1412,14 @@ def restore_run(resume: Optional[dict], saved: dict, envs: list, args, device: t
     for e, state in zip(envs, resume["envs"]):
         e.set_rng_state(state)
     if not np.array_equal(obs, resume["obs"].cpu().numpy()):
-        print(f"{args.exp_name}: warning: the replayed episode differs from the saved one (another MuJoCo?); "
-              "the run continues, not bitwise as uninterrupted", flush=True)
-    start_step, progress.step, progress.time = resume["global_step"], resume["global_step"], resume["elapsed"]
+        print(
+            f"{args.exp_name}: warning: the replayed episode differs from the saved one "
+            "(another MuJoCo?); the run continues, not bitwise as uninterrupted",
+            flush=True,
+        )
+    start_step = resume["global_step"]
+    progress.step = resume["global_step"]
+    progress.time = resume["elapsed"]
     # the purge hid the step's evaluation
     if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
         for tag, value in loop.last_eval.items():
@@ -1409,8 +1540,8 @@ class ExternalTeacher:
 
     def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
         """Write `teacher.json`: what the labelling page shows."""
-        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked, labelled=labelled,
-                        step=step, message=message))
+        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
+                        labelled=labelled, step=step, message=message))
 
     def training(self, step: int, seconds: float):
         """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
@@ -1507,8 +1638,8 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
     With an external teacher, a person or a program answers through files (labelling by hand).
     Else B-Pref's simulated teacher answers from the segments' true rewards."""
     if external and len(segments):
-        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics, step,
-                            loop.total_feedback, loop.labeled_feedback)
+        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics,
+                            step, loop.total_feedback, loop.labeled_feedback)
     margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
     keep, labels = teacher(
         true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
@@ -1522,19 +1653,19 @@ def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, seg
     """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
     Labels are NaN where skipped."""
     round_index = queries.next_round
-    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(), round_index, step,
-                sha256)
+    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(),
+                round_index, step, sha256)
     queries.save_round(folder, env_id, obs_dim, round_index)
 
 
-def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module, reward_optimizer, rb,
-              episodes, diagnostic_positions: torch.Tensor):
+def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module,
+              reward_optimizer, rb, episodes, diagnostic_positions: torch.Tensor):
     """The tags of a feedback round: feedback counts, reward optimiser steps, reward diagnostics."""
     writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
     writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
     writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
-    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes, diagnostic_positions,
-                           args.diagnostic_pairs, args.segment_size)
+    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes,
+                           diagnostic_positions, args.diagnostic_pairs, args.segment_size)
 
 
 def optimizer_steps(optimizer) -> int:
@@ -1544,8 +1675,8 @@ def optimizer_steps(optimizer) -> int:
 
 
 @torch.no_grad()
-def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb, store,
-                           positions: torch.Tensor, n_pairs: int, segment_size: int):
+def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb,
+                           store, positions: torch.Tensor, n_pairs: int, segment_size: int):
     """How well the ensemble mean tracks the true reward (logs only): Pearson correlation on stored
     transitions at fixed relative buffer `positions`; preference accuracy against the oracle on
     `n_pairs` fresh segment pairs, never in the dataset or budget, ties left out. A generator of
@@ -1601,7 +1732,14 @@ if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
-        env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type, args.noise_histograms, args.episode_length)
+        env = ene.make_env(
+            args.env_id,
+            args.seed,
+            args.noise,
+            args.noise_type,
+            args.noise_histograms,
+            args.episode_length,
+        )
         input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
         preferences = args.preferences and load_preferences(
             args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback
@@ -1617,8 +1755,13 @@ if __name__ == "__main__":
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
-            args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type, args.noise_histograms,
-            args.episode_length, video_folder if args.capture_video and i == 0 else None,
+            args.env_id,
+            args.seed + 1000 * (i + 1),
+            args.noise,
+            args.noise_type,
+            args.noise_histograms,
+            args.episode_length,
+            video_folder if args.capture_video and i == 0 else None,
         )
         for i in range(args.eval_episodes)
     ]
@@ -1633,21 +1776,25 @@ if __name__ == "__main__":
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
     if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
-        critic_gradients, actor_gradients, target_update = map(torch.compile, (critic_gradients, actor_gradients,
-                                                                              target_update))
+        critic_gradients, actor_gradients, target_update = map(
+            torch.compile, (critic_gradients, actor_gradients, target_update)
+        )
     # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
     if args.cuda_graph:
         # stream of its own: a capture cannot involve the legacy default one
         torch.cuda.set_stream(torch.cuda.Stream())
-        critic_gradients, actor_gradients, target_update = map(CudaGraph, (critic_gradients, actor_gradients,
-                                                                           target_update))
+        critic_gradients, actor_gradients, target_update = map(
+            CudaGraph, (critic_gradients, actor_gradients, target_update)
+        )
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":
         # several runs per machine: default threads oversubscribe the cores
         torch.set_num_threads(args.threads or 1)
 
-    obs_dim_real, obs_dim, act_dim = env.obs_dim_real, env.observation_space.shape[0], env.action_space.shape[0]
+    obs_dim_real = env.obs_dim_real
+    obs_dim = env.observation_space.shape[0]
+    act_dim = env.action_space.shape[0]
     noise = env.noise_sampler if args.noise_resample else None
 
     # ALGO LOGIC: the agent, and what it learns from
@@ -1656,8 +1803,8 @@ if __name__ == "__main__":
     reward_model = reward_model.to(device)
     reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr)
     reward_optimizer = SparseOptimizer(reward_optimizer, {"reward": reward_model.weights[0]},
-                                       args.reward_sparsity if args.sparse_reward else 0.0, args.reward_drop_fraction,
-                                       args.reward_topology_period)
+                                       args.reward_sparsity if args.sparse_reward else 0.0,
+                                       args.reward_drop_fraction, args.reward_topology_period)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
@@ -1682,7 +1829,9 @@ if __name__ == "__main__":
     stop_signals = catch_stop_signals()
     external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
     progress = Progress(args.total_timesteps, args.max_feedback, on_step=external.training if external else None)
-    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer, progress, state_path)
+    obs, start_step, elapsed = restore_run(
+        resume, saved, [env, *eval_envs], args, device, writer, progress, state_path
+    )
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
@@ -1700,7 +1849,8 @@ if __name__ == "__main__":
             progress.update(global_step, phase, time.time() - start_time, loop.total_feedback)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
-                action = torch.as_tensor(env.action_space.sample(), dtype=torch.float32, device=device)
+                action = env.action_space.sample()
+                action = torch.as_tensor(action, dtype=torch.float32, device=device)
             else:
                 action = act(agent.actor, obs)
 
@@ -1716,7 +1866,8 @@ if __name__ == "__main__":
                 rb, obs, action, next_obs, terminated, float(true_reward),
                 reward_model, episodes, physics,
             )
-            loop.episode_return, loop.episode_length = loop.episode_return + float(true_reward), loop.episode_length + 1
+            loop.episode_return += float(true_reward)
+            loop.episode_length += 1
             obs = next_obs  # CRUCIAL step easy to overlook
             if terminated or truncated:
                 writer.add_scalar("charts/episodic_return", loop.episode_return, global_step)
@@ -1769,26 +1920,41 @@ if __name__ == "__main__":
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
-                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates, global_step + 1)
-                print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} eval_seconds={eval_seconds:.2f} "
-                      f"feedback={loop.total_feedback}/{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
+                        writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
+                                          global_step + 1)
+                print(
+                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+                    f"eval_seconds={eval_seconds:.2f} "
+                    f"feedback={loop.total_feedback}/{args.max_feedback} "
+                    f"labels={loop.labeled_feedback}",
+                    flush=True,
+                )
                 progress.eval_return = eval_return
                 check_finite({"eval/episodic_return": eval_return}, global_step)
                 if args.save_model:
-                    save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+                    save_checkpoint(
+                        checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
+                    )
 
             if stop_signals or state_due(global_step, args, last_state) or (
                 external and feedback_due(global_step + 1, pebble_start, loop, args)  # a person's round can resume
             ):
-                save_state(state_path, args, global_step, time.time() - start_time, obs, saved, device, [env, *eval_envs],
-                           writer)
+                save_state(
+                    state_path, args, global_step, time.time() - start_time, obs, saved, device,
+                    [env, *eval_envs], writer,
+                )
                 last_state = time.monotonic()
                 if stop_signals:
-                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; state saved in "
-                                  f"{state_path}: run the same command with --run-name {run_name} to resume")
+                    raise Stopped(
+                        f"stopped by {stop_signals[0]} after step {global_step + 1}; "
+                        f"state saved in {state_path}: "
+                        f"run the same command with --run-name {run_name} to resume"
+                    )
     except (Stopped, NonFinite) as e:
         if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
-            save_checkpoint(checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim))
+            save_checkpoint(
+                checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
+            )
             e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         if external:
             external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback, message=str(e))
