@@ -407,8 +407,7 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     degree = (weight != 0).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
-    metrics = {"relevant_degree": degree[relevant].mean(),
-               "relevant_active_frac": degree[relevant].sum() / degree.sum()}
+    metrics = {"relevant_degree": degree[relevant].mean(), "relevant_active_frac": degree[relevant].sum() / degree.sum()}
     if (~relevant).any():
         metrics["noise_degree"] = degree[~relevant].mean()
     return metrics

@@ -257,13 +257,10 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
     if not 1 <= args.segment_size <= args.episode_length:
         raise ValueError(
-            f"--segment-size {args.segment_size} is longer than an episode "
-            f"(--episode-length {args.episode_length})"
+            f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})"
         )
     if args.learning_starts <= args.knn_k:
-        raise ValueError(
-            f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}"
-        )
+        raise ValueError(f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}")
     if args.total_timesteps <= args.learning_starts + args.unsup_steps:
         raise ValueError(
             f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
@@ -271,9 +268,8 @@ def validate_args(args: Args) -> None:
         )
     if args.learning_starts + args.unsup_steps < args.episode_length:
         raise ValueError(
-            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} "
-            f"must cover one episode (--episode-length {args.episode_length}): "
-            "the first feedback round cuts segments from complete episodes"
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must cover one episode "
+            f"(--episode-length {args.episode_length}): the first feedback round cuts segments from complete episodes"
         )
     if args.buffer_size < args.batch_size:
         raise ValueError(
@@ -301,9 +297,7 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
     for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
         if not 0.0 <= getattr(args, flag) <= 1.0:
-            raise ValueError(
-                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
-            )
+            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
     for flag in (
         "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
         "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
@@ -447,8 +441,7 @@ class ReplayBuffer:
 class EpisodeStore:
     """Last `max_episodes` whole episodes to cut segments from: [obs, action] rows, true rewards."""
 
-    def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int,
-                 device: torch.device):
+    def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int, device: torch.device):
         self.slots = max_episodes + 1  # one slot is being written, the others hold whole episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
@@ -460,8 +453,7 @@ class EpisodeStore:
     def add(self, obs, action, true_reward: float, physics: Optional[np.ndarray] = None):
         """Append one step. Episodes last `episode_length` steps: DMC episodes never end early."""
         slot = self.n_complete % self.slots
-        self.inputs[slot, self.t, : self.obs_dim] = obs
-        self.inputs[slot, self.t, self.obs_dim :] = action
+        self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
         self.true_rewards[slot, self.t] = true_reward
         if physics is not None:
             if self.physics.shape[2] != len(physics):
@@ -476,14 +468,12 @@ class EpisodeStore:
         (n, 2, H) and, with `with_physics`, their physics states (n, 2, H, P) in numpy."""
         device = self.inputs.device
         n_available = min(self.n_complete, self.max_episodes)
-        episodes_back = torch.randint(0, n_available, (n_pairs, 2), device=device)
-        episodes = (self.n_complete - 1 - episodes_back) % self.slots
+        episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
         starts = torch.randint(0, self.episode_length - length + 1, (n_pairs, 2), device=device)
         steps = starts.unsqueeze(-1) + torch.arange(length, device=device)
         episodes = episodes.unsqueeze(-1)
         segments = self.inputs[episodes, steps], self.true_rewards[episodes, steps]
-        return ((*segments, self.physics[episodes.cpu().numpy(), steps.cpu().numpy()])
-                if with_physics else segments)
+        return (*segments, self.physics[episodes.cpu().numpy(), steps.cpu().numpy()]) if with_physics else segments
 
 
 class PreferenceBuffer:
@@ -491,8 +481,7 @@ class PreferenceBuffer:
     (unused for unlabelled pairs). SURF stores S = H + 2 * crop steps, the teacher's
     H = `segment_size` in the middle; S is that of the first pairs added."""
 
-    def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device,
-                 noise=None):
+    def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device, noise=None):
         # steps allocated at the first add
         self.segments = torch.zeros((capacity, 2, 0, input_dim), device=device)
         self.labels = torch.zeros(capacity, device=device)
@@ -502,8 +491,7 @@ class PreferenceBuffer:
         if self.segments.shape[2] == 0:
             self.segments = self.segments.new_zeros((len(self.labels), *segments.shape[1:]))
         n = len(labels)
-        self.segments[self.size : self.size + n] = segments
-        self.labels[self.size : self.size + n] = labels
+        self.segments[self.size : self.size + n], self.labels[self.size : self.size + n] = segments, labels
         self.size += n
 
     def read(self, indices: torch.Tensor):
@@ -521,10 +509,8 @@ class RewardEnsemble(nn.Module):
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(dims[:-1], dims[1:]):
             bound = 1 / math.sqrt(fan_in)  # nn.Linear's default initialisation, per member
-            weight = torch.empty(ensemble_size, fan_out, fan_in).uniform_(-bound, bound)
-            self.weights.append(nn.Parameter(weight))
-            bias = torch.empty(ensemble_size, 1, fan_out).uniform_(-bound, bound)
-            self.biases.append(nn.Parameter(bias))
+            self.weights.append(nn.Parameter(torch.empty(ensemble_size, fan_out, fan_in).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(ensemble_size, 1, fan_out).uniform_(-bound, bound)))
         self.ensemble_size = ensemble_size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -541,13 +527,11 @@ class RewardEnsemble(nn.Module):
         return self(x).mean(0)
 
     def member_state_dicts(self) -> list:
-        return [{name: value[e] for name, value in self.state_dict().items()}
-                for e in range(self.ensemble_size)]
+        return [{name: value[e] for name, value in self.state_dict().items()} for e in range(self.ensemble_size)]
 
 
 def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Bradley-Terry cross-entropy per member. returns (E, B, 2) segment sums;
-    labels (E, B) = P[segment 1 preferred]."""
+    """Bradley-Terry cross-entropy per member. returns (E, B, 2) segment sums; labels (E, B) = P[segment 1 preferred]."""
     log_probs = F.log_softmax(returns, dim=-1)
     return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
 
@@ -644,16 +628,14 @@ def train_reward(
 
 def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float,
             eps_skip: float, eps_equal: float):
-    """B-Pref's simulated teacher on true per-step rewards (n, H).
-    Returns (kept pairs mask, labels in {0, 0.5, 1})."""
+    """B-Pref's simulated teacher on true per-step rewards (n, H). Returns (kept pairs mask, labels in {0, 0.5, 1})."""
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
     keep = torch.ones_like(returns0, dtype=torch.bool)
     if eps_skip > 0:  # skip pairs where neither segment is good enough
         keep = torch.maximum(returns0, returns1) > eps_skip * margin
     equal = (returns0 - returns1).abs() < eps_equal * margin
     horizon = rewards0.shape[1]
-    exponents = torch.arange(horizon - 1, -1, -1, device=rewards0.device, dtype=rewards0.dtype)
-    weights = gamma ** exponents
+    weights = gamma ** torch.arange(horizon - 1, -1, -1, device=rewards0.device, dtype=rewards0.dtype)
     discounted0, discounted1 = (rewards0 * weights).sum(1), (rewards1 * weights).sum(1)
     if beta > 0:
         labels = torch.bernoulli(torch.sigmoid(beta * (discounted1 - discounted0)))
@@ -699,9 +681,7 @@ class RunningMeanStd:
     def update(self, x: torch.Tensor):
         batch_mean, batch_var, n = x.mean(), x.var(correction=0), x.numel()
         delta, total = batch_mean - self.mean, self.count + n
-        self.var = (
-            self.var * self.count + batch_var * n + delta**2 * self.count * n / total
-        ) / total
+        self.var = (self.var * self.count + batch_var * n + delta**2 * self.count * n / total) / total
         self.mean = self.mean + delta * n / total
         self.count = total
 
@@ -711,20 +691,17 @@ class RunningMeanStd:
 
 
 @torch.no_grad()
-def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int,
-                 chunk: int = 16384) -> torch.Tensor:
+def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 16384) -> torch.Tensor:
     """L2 distance from each sample to its k-th nearest neighbour among `points`, itself excluded.
     Samples are rows of `points`, so the nearest one, at distance 0, is skipped."""
     nearest = None
     for part in points.split(chunk):
-        d = (torch.cdist(samples, part) if nearest is None
-             else torch.cat([nearest, torch.cdist(samples, part)], 1))
+        d = torch.cdist(samples, part) if nearest is None else torch.cat([nearest, torch.cdist(samples, part)], 1)
         nearest = d.topk(min(k + 1, d.shape[1]), dim=1, largest=False).values
     return nearest[:, k]
 
 
-def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int,
-                         stats: RunningMeanStd) -> torch.Tensor:
+def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, stats: RunningMeanStd) -> torch.Tensor:
     """PEBBLE's intrinsic reward for rows `indices` of `points`: k-NN distance / running std."""
     distances = knn_distance(points[indices], points, k)
     stats.update(distances)
@@ -853,9 +830,8 @@ def store(
     reward_model: RewardEnsemble, episodes: EpisodeStore, physics: np.ndarray,
 ):
     """Write one step into the run's storage, with the reward the agent learns from."""
-    inputs = torch.cat([obs, action]).unsqueeze(0)
     rb.add(obs, action, next_obs, terminated, true_reward,
-           reward_model.mean_reward(inputs)[0])  # never the true reward
+           reward_model.mean_reward(torch.cat([obs, action]).unsqueeze(0))[0])  # never the true reward
     episodes.add(obs, action, true_reward, physics)
 
 
@@ -883,10 +859,9 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
         target_update(agent, args.tau)
 
 
-def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args,
-                   reward_model: RewardEnsemble, reward_optimizer, episodes: EpisodeStore,
-                   prefs: PreferenceBuffer, rb: ReplayBuffer, queries: "QueryLog",
-                   diagnostic_positions: torch.Tensor, writer, run_folder: str,
+def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, reward_model: RewardEnsemble,
+                   reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
+                   queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
                    external: Optional["ExternalTeacher"], unlabeled: PreferenceBuffer) -> float:
     """Ask a round of queries, train the reward ensemble on all labels, relabel the whole buffer.
     Returns the seconds spent waiting for an external teacher (not training time)."""
@@ -922,8 +897,7 @@ def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args,
         writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
         check_finite({"pbrl/reward_loss": loss}, global_step)
     rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
-    log_round(writer, global_step, loop, args, reward_model, reward_optimizer, rb, episodes,
-              diagnostic_positions)
+    log_round(writer, global_step, loop, args, reward_model, reward_optimizer, rb, episodes, diagnostic_positions)
     return waited
 
 
@@ -931,8 +905,7 @@ def feedback_due(step: int, pebble_start: int, loop: Loop, args: Args) -> bool:
     """Whether step `step` begins with a feedback round: the first at `pebble_start`, then one every
     `feedback_freq` steps while the budget lasts."""
     return step == pebble_start or (
-        step > pebble_start and (step - pebble_start) % args.feedback_freq == 0
-        and loop.total_feedback < args.max_feedback
+        step > pebble_start and (step - pebble_start) % args.feedback_freq == 0 and loop.total_feedback < args.max_feedback
     )
 
 
@@ -1459,48 +1432,39 @@ class QueryLog:
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
         self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
         self.physics = np.zeros((0, 2, segment_steps, physics_dim))
-        self.labels = np.zeros(0, np.float32)
-        self.rounds = np.zeros(0, np.int64)
-        self.steps = np.zeros(0, np.int64)
+        self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.label_sha256 = np.zeros(0, "<U64")  # indexed by round
 
     @property
     def next_round(self) -> int:
         return int(self.rounds.max(initial=-1)) + 1
 
-    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int,
-            label_sha256: str = ""):
+    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int, label_sha256: str = ""):
         new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
                    rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
         for name, value in new.items():
-            so_far = getattr(self, name)
-            setattr(self, name, np.concatenate([so_far, np.asarray(value, so_far.dtype)]))
+            setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
         if round_index >= 0:  # padded: older states (no SHA-256 kept) resume with none per round
-            padding = np.full(round_index - len(self.label_sha256), "")
-            self.label_sha256 = np.concatenate(
-                [self.label_sha256, padding, [label_sha256]]
-            ).astype("<U64")
+            self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
+                                                [label_sha256]]).astype("<U64")
 
     def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
         """Write one round's queries to `{folder}/{round}.npz` (from `--preferences`: `seeded.npz`).
         Each round has its own file: it writes its own queries, not the whole log again."""
         rows = self.rounds == round_index
         inputs = self.inputs[rows]
-        sha256 = (self.label_sha256[round_index:round_index + 1] if round_index >= 0
-                  else self.label_sha256[:0])
+        sha256 = self.label_sha256[round_index:round_index + 1] if round_index >= 0 else self.label_sha256[:0]
         name = round_index if round_index >= 0 else "seeded"
-        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim],
-                  actions=inputs[..., obs_dim:], true_rewards=self.true_rewards[rows],
-                  physics=self.physics[rows], labels=self.labels[rows], rounds=self.rounds[rows],
-                  steps=self.steps[rows], label_sha256=sha256)
+        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim], actions=inputs[..., obs_dim:],
+                  true_rewards=self.true_rewards[rows], physics=self.physics[rows], labels=self.labels[rows],
+                  rounds=self.rounds[rows], steps=self.steps[rows], label_sha256=sha256)
 
 
 def read_preferences(path: str) -> dict:
     """A run's query log as one set of arrays, from its `preferences/` folder (seeded first, then
     the rounds in order) or a single `.npz` file."""
     if os.path.isdir(path):
-        rounds = sorted(int(name[:-4]) for name in os.listdir(path)
-                        if name.endswith(".npz") and name[:-4].isdigit())
+        rounds = sorted(int(name[:-4]) for name in os.listdir(path) if name.endswith(".npz") and name[:-4].isdigit())
         seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
         files = seeded + [f"{path}/{r}.npz" for r in rounds]
     else:
@@ -1511,36 +1475,26 @@ def read_preferences(path: str) -> dict:
             parts.append({name: data[name] for name in data.files})
     if not parts:
         raise ValueError(f"no preferences files in {path}")
-    joined = {name: np.concatenate([part[name] for part in parts])
-              for name in parts[0] if name != "env_id"}
+    joined = {name: np.concatenate([part[name] for part in parts]) for name in parts[0] if name != "env_id"}
     return dict(joined, env_id=parts[0]["env_id"])
 
 
-def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
-                     budget: int) -> dict:
+def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
     """The arrays of an earlier run's query log (`--preferences`): its `preferences/` folder or one
     `.npz` of it. A ValueError with one line if they do not fit this run."""
     if not os.path.exists(path):
         raise ValueError(f"--preferences: no such file or folder: {path}")
     try:
         arrays = read_preferences(path)
-        names = ("env_id", "obs", "actions", "true_rewards", "physics", "labels")
-        arrays = {name: arrays[name] for name in names}
+        arrays = {name: arrays[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
     except Exception as e:  # not an npz, a missing array
-        raise ValueError(
-            f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})"
-        ) from None
+        raise ValueError(f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})") from None
     shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
     if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
-        raise ValueError(
-            f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps "
-            f"x {shape[1]} features; this run needs {env_id}, {segment_steps} x {input_dim}"
-        )
+        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
+                         f"features; this run needs {env_id}, {segment_steps} x {input_dim}")
     if len(arrays["labels"]) > budget:
-        raise ValueError(
-            f"--preferences: {path} holds {len(arrays['labels'])} queries, "
-            f"more than --max-feedback {budget}"
-        )
+        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than --max-feedback {budget}")
     return arrays
 
 
@@ -1557,11 +1511,9 @@ class ExternalTeacher:
 
     def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
         self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
-        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(),
-                        host=socket.gethostname(), budget=args.max_feedback,
-                        total_steps=args.total_timesteps)
-        self.status = None  # the last status written
-        self.told = -math.inf  # when the step was (training seconds)
+        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(), host=socket.gethostname(),
+                        budget=args.max_feedback, total_steps=args.total_timesteps)
+        self.status, self.told = None, -math.inf  # the last status written; when the step was (training seconds)
 
     def nap(self):
         """Sleep `poll_seconds`, or until a stop signal. Python resumes a sleep after the signal's
@@ -1570,8 +1522,7 @@ class ExternalTeacher:
         while not self.stop_signals and time.monotonic() < until:
             time.sleep(0.05)
 
-    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None,
-             queries=None, message=None):
+    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
         """Write `teacher.json`: what the labelling page shows."""
         self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
                         labelled=labelled, step=step, message=message))
@@ -1579,8 +1530,7 @@ class ExternalTeacher:
     def training(self, step: int, seconds: float):
         """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
         says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
-        if (self.status is None or self.status["phase"] != "training"
-                or seconds - self.told < self.step_seconds):
+        if self.status is None or self.status["phase"] != "training" or seconds - self.told < self.step_seconds:
             return
         self.told = seconds
         self.write(dict(self.status, step=step))
@@ -1592,36 +1542,25 @@ class ExternalTeacher:
             json.dump(self.status, f)
         os.replace(f"{self.folder}/teacher.json.tmp", f"{self.folder}/teacher.json")
 
-    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor,
-            true_rewards: torch.Tensor, physics: np.ndarray, step: int, asked: int,
-            labelled: int) -> tuple:
+    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
+            physics: np.ndarray, step: int, asked: int, labelled: int) -> tuple:
         """Write the round's queries, then wait for a valid labels file. A malformed one gets one
         line (and the page's notice); the wait goes on. Returns the answered pairs' mask and labels
         (0 where skipped), both on the segments' device, the file's SHA-256 and seconds waited. A
         stop signal raises `Stopped`: the state written before the round resumes into it."""
         rows = segments.cpu().numpy()
-        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id,
-                  obs=rows[..., :obs_dim], actions=rows[..., obs_dim:], physics=physics,
-                  true_rewards=true_rewards.cpu().numpy())
-        path = f"{self.folder}/labels/{round_index}.json"
-        n = len(rows)
-        started = time.monotonic()
-        seen, problem = None, None
-        print(
-            f"waiting for labels: {path}, one per query of {self.folder}/queries/{round_index}.npz "
-            f"(by hand: python label_app.py {self.folder})",
-            flush=True,
-        )
+        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim],
+                  actions=rows[..., obs_dim:], physics=physics, true_rewards=true_rewards.cpu().numpy())
+        path, n, started, seen, problem = f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
+        print(f"waiting for labels: {path}, one per query of {self.folder}/queries/{round_index}.npz (by hand: python "
+              f"label_app.py {self.folder})", flush=True)
         while True:
             if self.stop_signals:
                 import gc
 
                 gc.freeze()  # run ends; exit skips collecting torch's and the run's objects (1 s+)
-                raise Stopped(
-                    f"stopped by {self.stop_signals[0]} while waiting for {path}; "
-                    "the state before this round is saved: "
-                    f"run the same command with --run-name {self.run['run']} to resume"
-                )
+                raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
+                              f"round is saved: run the same command with --run-name {self.run['run']} to resume")
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
@@ -1635,12 +1574,10 @@ class ExternalTeacher:
             self.tell("waiting", step, asked, labelled, round_index, n, problem)
             self.nap()
         answers = np.array([np.nan if a == "skip" else a for a in json.loads(content)], np.float32)
-        keep = torch.as_tensor(~np.isnan(answers))
-        labels = torch.nan_to_num(torch.as_tensor(answers))
+        keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
         self.tell("training", step, asked + n, labelled + int(keep.sum()))
         sha256 = hashlib.sha256(content).hexdigest()
-        return (keep.to(segments.device), labels.to(segments.device), sha256,
-                time.monotonic() - started)
+        return keep.to(segments.device), labels.to(segments.device), sha256, time.monotonic() - started
 
 
 def check_labels_unchanged(folder: str, queries: dict):
@@ -1649,11 +1586,8 @@ def check_labels_unchanged(folder: str, queries: dict):
     for round_index, recorded in enumerate(queries.get("label_sha256", [])):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
-            raise ValueError(
-                f"{path} is not the labels file this run trained on "
-                f"(SHA-256 {recorded[:12]}...); put it back as it was "
-                f"(the run's preferences/{round_index}.npz holds its labels)"
-            )
+            raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 {recorded[:12]}...); put it "
+                             f"back as it was (the run's preferences/{round_index}.npz holds its labels)")
 
 
 LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # exactly these spellings: not 1.0, 1e0, -0 or 0.50
@@ -1682,8 +1616,7 @@ def file_sha256(path: str) -> Optional[str]:
 
 
 def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, loop, obs_dim: int,
-                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray,
-                step: int) -> tuple:
+                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray, step: int) -> tuple:
     """A round's labels: (answered mask, labels, the labels file's SHA-256, seconds waited).
 
     With an external teacher, a person or a program answers through files (labelling by hand).
@@ -1691,8 +1624,7 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
     if external and len(segments):
         return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics,
                             step, loop.total_feedback, loop.labeled_feedback)
-    margin = (float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length
-              if loop.recent_returns else 0.0)
+    margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
     keep, labels = teacher(
         true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
         args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
@@ -1701,8 +1633,7 @@ def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, l
 
 
 def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, segments: torch.Tensor,
-                true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int,
-                sha256: str):
+                true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
     """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
     Labels are NaN where skipped."""
     round_index = queries.next_round
@@ -1741,8 +1672,7 @@ def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, m
         predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
         correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
         segments, true_rewards = store.sample_segments(n_pairs, segment_size)
-        inputs = read_noisy(segments, noise).flatten(0, 2)
-        returns = model(inputs).mean(0).view(*segments.shape[:3]).sum(-1)
+        returns = model(read_noisy(segments, noise).flatten(0, 2)).mean(0).view(*segments.shape[:3]).sum(-1)
         _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
     strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
     accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
@@ -1854,9 +1784,7 @@ if __name__ == "__main__":
 
     # ALGO LOGIC: the agent, and what it learns from
     agent = make_agent(obs_dim, act_dim, args, device)
-    reward_model = RewardEnsemble(
-        obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size
-    )
+    reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
     reward_model = reward_model.to(device)
     reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
@@ -1867,36 +1795,26 @@ if __name__ == "__main__":
                                  obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
     stored_steps = args.segment_size + 2 * args.surf_crop
-    physics_dim = len(env.physics_state())
-    queries = QueryLog(stored_steps, obs_dim + act_dim, physics_dim)  # preferences/
+    queries = QueryLog(stored_steps, obs_dim + act_dim, len(env.physics_state()))  # preferences/
     # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
-    generator = torch.Generator().manual_seed(args.seed)
-    diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=generator)
+    diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
     diagnostic_positions = diagnostic_positions.to(device)
     loop = Loop()
     if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
         inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
-        queries.add(inputs, preferences["true_rewards"], preferences["physics"],
-                    preferences["labels"], -1, -1)
+        queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
         queries.save_round(f"{run_folder}/preferences", args.env_id, obs_dim, -1)
         kept = ~np.isnan(preferences["labels"])
-        prefs.add(torch.as_tensor(inputs[kept], device=device),
-                  torch.as_tensor(preferences["labels"][kept], device=device))
+        prefs.add(torch.as_tensor(inputs[kept], device=device), torch.as_tensor(preferences["labels"][kept], device=device))
         loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size
     # everything the loop changes, by name: `state.pt` saves and restores exactly these
-    saved = dict(
-        agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer,
-        rb=rb, episodes=episodes, prefs=prefs, entropy_stats=entropy_stats,
-        queries=queries, unlabeled=unlabeled, loop=loop,
-    )
+    saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb, episodes=episodes,
+                 prefs=prefs, entropy_stats=entropy_stats, queries=queries, unlabeled=unlabeled, loop=loop)
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
-    external = (
-        ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
-    )
-    progress = Progress(args.total_timesteps, args.max_feedback,
-                        on_step=external.training if external else None)
+    external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
+    progress = Progress(args.total_timesteps, args.max_feedback, on_step=external.training if external else None)
     obs, start_step, elapsed = restore_run(
         resume, saved, [env, *eval_envs], args, device, writer, progress, state_path
     )
@@ -1906,9 +1824,8 @@ if __name__ == "__main__":
     last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
     round_objects = dict(  # what a feedback round reads and changes, by name
-        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer,
-        episodes=episodes, prefs=prefs, rb=rb, queries=queries,
-        diagnostic_positions=diagnostic_positions, writer=writer,
+        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes,
+        prefs=prefs, rb=rb, queries=queries, diagnostic_positions=diagnostic_positions, writer=writer,
         run_folder=run_folder, external=external, unlabeled=unlabeled,
     )
     try:
@@ -1952,23 +1869,19 @@ if __name__ == "__main__":
                 if global_step < pebble_start:  # unsupervised pre-training, state-entropy reward
                     data = rb.sample(args.batch_size)
                     points = read_noisy(rb.obs[: rb.size], noise)
-                    intrinsic_reward = state_entropy_reward(
-                        data.indices, points, args.knn_k, entropy_stats
-                    )
+                    intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
                     sac_update(agent, data._replace(rewards=intrinsic_reward), loop, args)
                     loop.losses["state_entropy_reward"] = intrinsic_reward.mean()
-                elif global_step == pebble_start:
-                    # first feedback round, then a fresh critic on the learned reward
+                elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
                     start_time += feedback_round("uniform", global_step, **round_objects)
-                    (agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target,
-                     agent.qf2_target) = make_critic(obs_dim, act_dim, args, device)
+                    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = make_critic(
+                        obs_dim, act_dim, args, device
+                    )
                     for _ in range(args.reset_updates):
                         sac_update(agent, rb.sample(args.batch_size), loop, args)
                 else:
                     if feedback_due(global_step, pebble_start, loop, args):
-                        start_time += feedback_round(
-                            args.query_sampling, global_step, **round_objects
-                        )
+                        start_time += feedback_round(args.query_sampling, global_step, **round_objects)
                     sac_update(agent, rb.sample(args.batch_size), loop, args)
 
                 if global_step % args.log_freq == 0:
@@ -2004,8 +1917,7 @@ if __name__ == "__main__":
                     )
 
             if stop_signals or state_due(global_step, args, last_state) or (
-                # a person's round can resume
-                external and feedback_due(global_step + 1, pebble_start, loop, args)
+                external and feedback_due(global_step + 1, pebble_start, loop, args)  # a person's round can resume
             ):
                 save_state(
                     state_path, args, global_step, time.time() - start_time, obs, saved, device,
@@ -2025,8 +1937,7 @@ if __name__ == "__main__":
             )
             e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         if external:
-            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback,
-                          message=str(e))
+            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback, message=str(e))
         writer.close()
         raise SystemExit(f"{args.exp_name}: {e}")
 
