@@ -79,7 +79,7 @@ def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_
     signalled = time.monotonic()
     process.send_signal(signal.SIGTERM)
     assert process.wait(timeout=60) == 1
-    assert time.monotonic() - signalled < 10  # the state write and the exit; test_a_stop_ends_the_nap_at_once times the nap
+    assert time.monotonic() - signalled < 1  # at once: a person's stop is not kept waiting
     last = open(log).read().strip().splitlines()[-1]
     assert "stopped by SIGTERM while waiting for runs/ext/labels/1.json" in last and "--run-name ext to resume" in last
     assert status(run)["phase"] == "stopped" and status(run)["message"] in last
