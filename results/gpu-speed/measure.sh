@@ -53,10 +53,12 @@ else
   window_rounds=(7000 12000 17000 22000)
   agg_steps=(2200 2500)
   agg_total=2501  # one evaluation, at the end, after the window
-  # the most telling first: a call cut off still compares 8 runs without and with MPS
-  configs=("no x8 8" "yes x8 8" "no x4 4" "yes x4 4" "yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "yes x1 1")
-  exact_workers=12
-  budget_items=60 budget_exact=75 budget_window=135 budget_aggregate=245
+  # the most telling first: a call cut off still compares 8 runs without and with MPS, and has 8 at 256 wide
+  configs=("no x8 8" "yes x8 8" "yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "no x4 4" "yes x4 4" "yes x1 1")
+  exact_workers=14
+  # from the H100's first call (h100-2026-11-26/measure.log): items took 34 s, the window 103 s, the aggregate's
+  # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers
+  budget_items=50 budget_exact=140 budget_window=115 budget_aggregate=230
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 total=$((budget_items + budget_exact + budget_window + budget_aggregate))
