@@ -664,7 +664,8 @@ def actor_gradients(agent: Agent, data: Batch) -> dict:
     min_qf_pi = torch.min(qf1_pi, qf2_pi)
     actor_loss = (agent.alpha * log_pi - min_qf_pi).mean()
     agent.actor_optimizer.zero_grad()
-    actor_loss.backward()
+    # The actor's gradients alone: the critics' weight gradients would be discarded.
+    actor_loss.backward(inputs=list(agent.actor.parameters()))
     alpha_loss = (-agent.log_alpha.exp() * (log_pi.detach() + agent.target_entropy)).mean()
     agent.a_optimizer.zero_grad()
     alpha_loss.backward()

@@ -1,4 +1,5 @@
-"""The main loop's step functions `act` and `store` compute what the loop computed inline before them, bit for bit.
+"""The main loop's step functions `act` and `store` compute what the loop computed inline before them, bit for bit,
+and the actor's step computes the actor's gradients without the critics' weight gradients.
 
 A later GPU capture replays these functions, so they must stay the same calls in the same order: the same random
 stream, the same rows in the replay buffer and the episode store. Each script is checked with its own classes.
@@ -90,3 +91,31 @@ def test_store_writes_the_inline_rows(script):
             assert not different, f"{script}: store wrote other {name}.{different} than the inline code"
     if script in PBRL:
         assert not torch.equal(stored["rb"].rewards, stored["rb"].true_rewards), "the agent's reward is predicted"
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_the_actor_step_gives_the_actor_its_gradients_and_leaves_the_critics_alone(script):
+    """`actor_gradients` computes the actor's gradients only: the same as a full backward pass gives the actor, and
+    the critics' `.grad` stays as the critic's step left it (a full pass would add the actor loss's gradients)."""
+    module = importlib.import_module(script[:-3])
+    torch.manual_seed(0)
+    agent = module.make_agent(OBS_DIM, ACT_DIM, module.Args(hidden_dim=HIDDEN), torch.device("cpu"))
+    unused = [torch.zeros(1)] * len(module.Batch._fields)
+    data = module.Batch(*unused)._replace(obs=torch.randn(8, OBS_DIM))
+    critics = list(agent.qf1.parameters()) + list(agent.qf2.parameters())
+    for p in critics:
+        p.grad = torch.randn_like(p)  # as the critic's step leaves them
+    critic_grads = [p.grad.clone() for p in critics]
+    torch.manual_seed(1)
+    module.actor_gradients(agent, data)
+    actor_grads = [p.grad.clone() for p in agent.actor.parameters()]
+    assert all(torch.equal(p.grad, g) for p, g in zip(critics, critic_grads)), "the critics' gradients changed"
+
+    torch.manual_seed(1)  # the full backward pass, as the actor's step was written before
+    pi, log_pi, _ = agent.actor.get_action(data.obs)
+    min_qf_pi = torch.min(agent.qf1(data.obs, pi), agent.qf2(data.obs, pi))
+    agent.actor_optimizer.zero_grad()
+    (agent.alpha * log_pi - min_qf_pi).mean().backward()
+    for p, g in zip(agent.actor.parameters(), actor_grads):
+        torch.testing.assert_close(p.grad, g, rtol=1e-6, atol=1e-7)
+    assert not all(torch.equal(p.grad, g) for p, g in zip(critics, critic_grads)), "a full pass reaches the critics"
