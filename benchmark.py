@@ -22,6 +22,7 @@ Choices where the issue is silent:
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
   One local launcher per log folder (a lock on `{log_dir}/.launcher.lock`): a second would run the same runs again.
+  `--mps`: one CUDA MPS daemon for the sweep (one per array task on SLURM), in a private temporary folder.
   Local runs are in sessions of their own: Ctrl-C, SIGTERM or SIGHUP reach the launcher only, which stops them with
   SIGTERM (they save their state), and on Linux they get SIGTERM when the launcher dies, however it dies.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
@@ -35,6 +36,7 @@ Choices where the issue is silent:
   resumes an interrupted run from its `state.pt` (docs/running.md: "Resuming a run"). A folder without a state (a run that
   stopped before its first state, or one rerun with `--force`) is renamed `runs/{run_id}.old-{time}`, never deleted.
 """
+import contextlib
 import ctypes
 import fcntl
 import glob
@@ -45,6 +47,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -209,6 +212,10 @@ class Args:
     """local: GPUs to use, e.g. `0,1,2,3` (CUDA_VISIBLE_DEVICES of each run, round-robin); unset: left alone"""
     runs_per_gpu: int = 1
     """runs sharing one GPU (local: slots per GPU; slurm: runs packed into one GPU job)"""
+    mps: bool = False
+    """runs that share a GPU go through a CUDA MPS daemon, started before the first run and quit after the last
+    (local: one for the sweep; slurm: one per array task). 8 runs on one H100 went 1.77x as fast with it
+    (results/gpu-speed). Needs `nvidia-cuda-mps-control`, which comes with NVIDIA's driver"""
     threads: int = 1
     """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""
     log_dir: str = "logs"
@@ -388,6 +395,40 @@ def launch(spec: dict, gpu: Optional[str] = None, own_session: bool = False) -> 
     return process
 
 
+@contextlib.contextmanager
+def mps_daemon(enabled: bool):
+    """A CUDA MPS control daemon for the runs started inside, quit on the way out however it is left. Its pipe and log
+    folder is a private one on this node, so it neither meets another user's daemon nor needs a shared file system.
+    The runs find it through `CUDA_MPS_PIPE_DIRECTORY`, set in this process's environment while inside."""
+    if not enabled:
+        yield
+        return
+    folder = tempfile.mkdtemp(prefix="r2n-mps-")
+    daemon_env = dict.fromkeys(("CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY"), folder)
+    try:
+        started = subprocess.run(["nvidia-cuda-mps-control", "-d"], env=os.environ | daemon_env).returncode
+    except FileNotFoundError:
+        started = "not found"
+    if started != 0:
+        shutil.rmtree(folder, ignore_errors=True)
+        fail(f"--mps: the MPS daemon did not start (nvidia-cuda-mps-control -d: "
+             f"{started if isinstance(started, str) else f'exit code {started}'})")
+    before = {name: os.environ.get(name) for name in daemon_env}
+    os.environ.update(daemon_env)
+    print(f"MPS daemon started ({folder})", flush=True)
+    try:
+        yield
+    finally:
+        subprocess.run(["nvidia-cuda-mps-control"], input="quit\n", text=True)
+        print("MPS daemon quit", flush=True)
+        for name, value in before.items():
+            if value is None:
+                os.environ.pop(name)
+            else:
+                os.environ[name] = value
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def stop_with_launcher():
     """In a run's process before its script starts: SIGTERM (a state, then exit) when the launcher dies, however it
     dies (SIGKILL too), so that no run out of the launcher's process group goes on untracked. Linux's prctl."""
@@ -450,17 +491,19 @@ class RunGroup:
     (preempted jobs that SLURM requeues resume the same way). A run that ended before the signal is recorded as it
     ended (each is recorded when it ends, not in order), not started again."""
 
-    def __init__(self, earlier: tuple = ()):
+    def __init__(self, earlier: tuple = (), mps: bool = False):
         self.earlier = list(earlier)  # the results of the runs that ended in earlier starts of this task
+        self.mps = mps
 
     def __call__(self, specs: list) -> list:
         self.finished, self.results = set(), list(self.earlier)
-        self.processes = [(spec, launch(spec)) for spec in specs]
-        while len(self.finished) < len(self.processes):
-            time.sleep(1)
-            for spec, process in self.processes:
-                if spec["run_id"] not in self.finished and process.poll() is not None:
-                    self.record(spec, process.returncode, time.time() - process.started)
+        with mps_daemon(self.mps):
+            self.processes = [(spec, launch(spec)) for spec in specs]
+            while len(self.finished) < len(self.processes):
+                time.sleep(1)
+                for spec, process in self.processes:
+                    if spec["run_id"] not in self.finished and process.poll() is not None:
+                        self.record(spec, process.returncode, time.time() - process.started)
         return self.results
 
     def record(self, spec: dict, returncode: int, seconds: float):
@@ -493,7 +536,7 @@ class RunGroup:
             requeued.append(spec)
         # a fresh group (processes do not pickle) that reports the runs recorded so far too; an empty one when all
         # have ended (returning None would fail the job)
-        return submitit.helpers.DelayedSubmission(RunGroup(getattr(self, "results", self.earlier)), requeued)
+        return submitit.helpers.DelayedSubmission(RunGroup(getattr(self, "results", self.earlier), self.mps), requeued)
 
 
 def spec_of(run: Run, args: Args) -> dict:
@@ -638,7 +681,7 @@ def run_slurm(runs: list, args: Args) -> Optional[list]:
     specs = [spec_of(run, args) for run in runs]
     chunks = [specs[i:i + k] for i in range(0, len(specs), k)]
     executor = make_executor(args)
-    jobs = executor.map_array(RunGroup(), chunks)
+    jobs = executor.map_array(RunGroup(mps=args.mps), chunks)
     print(f"submitted {len(runs)} runs as {len(jobs)} array tasks ({k} per GPU job): job ids "
           f"{jobs[0].job_id} .. {jobs[-1].job_id}; submitit files in {args.slurm_folder}/", flush=True)
     for job, chunk in zip(jobs, chunks):
@@ -682,7 +725,11 @@ def main(args: Args) -> int:
     if not todo:
         print("nothing to run")
         return 0
-    results = run_local(todo, args) if args.backend == "local" else run_slurm(todo, args)
+    if args.backend == "local":
+        with mps_daemon(args.mps):
+            results = run_local(todo, args)
+    else:
+        results = run_slurm(todo, args)
     if results is None:
         return 0
     failures = [(run_id, code, log) for run_id, code, log in results if code != 0]

@@ -465,7 +465,7 @@ FAKE = """import json, os, sys, time
 start = time.time()
 time.sleep(float(os.environ.get("FAKE_SLEEP", "1")))
 print(json.dumps(dict(cuda=os.environ.get("CUDA_VISIBLE_DEVICES"), omp=os.environ.get("OMP_NUM_THREADS"),
-                      argv=sys.argv[1:], start=start, end=time.time())))
+                      mps=os.environ.get("CUDA_MPS_PIPE_DIRECTORY"), argv=sys.argv[1:], start=start, end=time.time())))
 sys.exit(3 if sys.argv[sys.argv.index("--seed") + 1] == "99" else 0)
 """
 
@@ -662,6 +662,78 @@ def test_cli_exit_code_and_no_gpus(fake_scripts):
     assert "FAILED pebble__cheetah-run__noise0.9__budget1000__seed99: exit code 3" in result.stdout
     view = child_view("pebble__cheetah-run__noise0.9__budget1000__seed1")
     assert (view["cuda"], view["omp"]) == ("7", "2")
+
+
+FAKE_MPS = """#!/bin/sh
+# a fake nvidia-cuda-mps-control: one line per call (time, arguments, standard input, its pipe folder)
+if [ "$1" = "-d" ]; then input=""; else input=$(cat); fi
+echo "$(python3 -c 'import time; print(time.time())') ${1:-none} ${input:-none} $CUDA_MPS_PIPE_DIRECTORY" >> "$MPS_CALLS"
+exit "${FAKE_MPS_EXIT:-0}"
+"""
+
+
+@pytest.fixture
+def fake_mps(tmp_path, monkeypatch):
+    """A fake `nvidia-cuda-mps-control` first on PATH; returns the file its calls are written to."""
+    bin_dir = tmp_path / "mps-bin"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-cuda-mps-control").write_text(FAKE_MPS)
+    (bin_dir / "nvidia-cuda-mps-control").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("MPS_CALLS", str(tmp_path / "mps-calls"))
+    monkeypatch.delenv("CUDA_MPS_PIPE_DIRECTORY", raising=False)
+    return tmp_path / "mps-calls"
+
+
+def mps_calls(path) -> list:
+    """(time, argument, input, pipe folder) of each call of the fake daemon control."""
+    return [(float(t), arg, given, folder) for t, arg, given, folder in
+            (line.split() for line in open(path).read().splitlines())]
+
+
+def test_mps_daemon_serves_the_runs_and_quits_after_the_last(fake_scripts, fake_mps, capsys):
+    """`--mps`: the daemon starts before the first run, every run finds it through CUDA_MPS_PIPE_DIRECTORY, and it is
+    quit after the last run has ended; its private folder goes, and the launcher's environment is as before."""
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1,), gpus="0",
+                          runs_per_gpu=2, mps=True, script_dir=fake_scripts)
+    assert benchmark.main(args) == 0
+    (start, arg, _, folder), (end, quit_arg, given, quit_folder) = mps_calls(fake_mps)
+    assert (arg, quit_arg, given) == ("-d", "none", "quit") and quit_folder == folder
+    views = [child_view(r.run_id) for r in benchmark.expand(args)]
+    assert all(v["mps"] == folder for v in views)
+    assert start < min(v["start"] for v in views) and max(v["end"] for v in views) < end
+    assert not os.path.exists(folder) and "CUDA_MPS_PIPE_DIRECTORY" not in os.environ
+    assert "MPS daemon started" in capsys.readouterr().out
+
+
+def test_mps_daemon_that_does_not_start_stops_the_sweep_before_any_run(fake_scripts, fake_mps, monkeypatch):
+    monkeypatch.setenv("FAKE_MPS_EXIT", "1")
+    args = benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), seeds=(1,), mps=True, script_dir=fake_scripts)
+    with pytest.raises(SystemExit, match=r"--mps: the MPS daemon did not start \(nvidia-cuda-mps-control -d: exit code 1\)"):
+        benchmark.main(args)
+    assert not glob.glob("logs/*.log")
+    monkeypatch.setenv("PATH", str(fake_mps.parent / "nowhere"))  # no daemon control at all
+    with pytest.raises(SystemExit, match="--mps: the MPS daemon did not start .*not found"):
+        benchmark.main(args)
+
+
+def test_a_slurm_task_with_mps_runs_its_group_through_one_daemon(fake_scripts, fake_mps, tmp_path):
+    """On SLURM the daemon is the array task's: started before its runs, quit after them, and kept on a requeue."""
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1,), script_dir=fake_scripts)
+    os.makedirs("logs")
+    specs = [benchmark.spec_of(run, args) for run in benchmark.expand(args)]
+    results = benchmark.RunGroup(mps=True)(specs)
+    assert [code for _, code, _ in results] == [0, 0]
+    (_, arg, _, folder), (_, _, given, _) = mps_calls(fake_mps)
+    assert (arg, given) == ("-d", "quit")
+    assert all(child_view(spec["run_id"])["mps"] == folder for spec in specs)
+
+
+
+@needs_submitit
+def test_a_requeued_slurm_task_keeps_its_mps_daemon():
+    requeued = benchmark.RunGroup(mps=True).checkpoint([])
+    assert requeued.function.mps and not benchmark.RunGroup().checkpoint([]).function.mps
 
 
 @needs_submitit
