@@ -264,14 +264,14 @@ def reset_critic(agent):
     agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = critic
 
 
-GRADIENTS = {"critic_gradients", "actor_gradients"}  # the actor's backward adds to the critics' `.grad` too
+GRADIENTS = {"critic_gradients", "actor_gradients"}  # the two steps that take the batch
 RECAPTURES = {  # a change after 6 updates, and the steps captured again
     "a batch of 8 rows": GRADIENTS,  # target_update has no tensor input
     "a parameter's requires_grad": set(STEPS),
     "a parameter's storage": set(STEPS),
     "TF32 matmuls": set(STEPS),
-    "the critics' .grad cleared": GRADIENTS,
-    "a critic's .grad replaced": GRADIENTS,
+    "the critics' .grad cleared": {"critic_gradients"},  # the actor's backward leaves the critics' `.grad` alone
+    "a critic's .grad replaced": {"critic_gradients"},
     "the actor's .grad cleared": {"actor_gradients"},
     "PEBBLE's critic reset": set(STEPS),
     "a new critic optimiser": set(STEPS),  # any agent field replaced
@@ -302,6 +302,8 @@ def test_a_change_is_captured_again(change, monkeypatch, fake_cuda, float32_flag
     assert len(fake_cuda) == 3 + len(RECAPTURES[change]) and all(wrapped.graph for wrapped in steps.values())
     critics = [*agent.qf1.parameters(), *agent.qf2.parameters()]  # the `.grad` a critic graph writes: the critics'
     assert [p for p, _ in steps["critic_gradients"].grads] == [p for p in critics if p.requires_grad]
+    actor = [*agent.actor.parameters(), agent.log_alpha]  # the actor graph's: the actor's and the temperature's
+    assert [p for p, _ in steps["actor_gradients"].grads] == [p for p in actor if p.requires_grad]
 
 
 def test_a_new_device_stops_the_run(monkeypatch, fake_cuda):

@@ -4,12 +4,15 @@
 # finished. The runs live in a work folder outside OUT: their state files are about 1 GB each.
 # Parts, in order (README "The prepared measurement (issue 32)"):
 #   items      host and GPU microseconds of each step item of a captured run (measure.py items) -> items.csv
+#   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt
 #   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
 #   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
 #   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide
 #              -> aggregate.csv (one row per configuration, written as each ends)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
+# PARTS="items window": only these parts, in the order written above (default: all).
+# EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them).
 set -u
 out=${1:?usage: measure.sh OUT [--dry-run]}
 dry=${2:-}
@@ -41,7 +44,8 @@ if [ "$dry" = "--dry-run" ]; then
   agg_total=501
   configs=("no x2 2" "yes x2 2")  # MPS cannot start on the CPU: its row is skipped
   exact_workers=1
-  budget_items=120 budget_exact=60 budget_window=150 budget_aggregate=150
+  actor_flags=(--hidden-dim 32 --batch-size 32 --repeats 5)
+  budget_items=120 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
   declare -A config_budget=([x2]=70)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
@@ -58,10 +62,18 @@ else
   exact_workers=14
   # from the H100's first call (h100-2026-11-26/measure.log): items took 34 s, the window 103 s, the aggregate's
   # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers
-  budget_items=50 budget_exact=140 budget_window=115 budget_aggregate=230
+  actor_flags=(--cuda --repeats 30)
+  budget_items=45 budget_actor=20 budget_exact=130 budget_window=115 budget_aggregate=230
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
-total=$((budget_items + budget_exact + budget_window + budget_aggregate))
+gpu+=(${EXTRA_FLAGS:-})
+parts=(${PARTS:-items actor exact window aggregate})
+total=0
+for part in "${parts[@]}"; do
+  budget="budget_$part"
+  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items actor exact window aggregate)"; exit 2; }
+  total=$((total + ${!budget}))
+done
 
 mps_on=0
 pids=()
@@ -103,44 +115,55 @@ part_start() {
   echo "$(date +%T) [$SECONDS s] part $1 (budget $2 s)"
 }
 
-echo "$(date +%T) plan: items ${budget_items} s, exact ${budget_exact} s, window ${budget_window} s, aggregate" \
-  "${budget_aggregate} s; ${total} s in all; ${dry:-GPU}"
+plan=""
+for part in "${parts[@]}"; do
+  budget="budget_$part"
+  plan+="$part ${!budget} s, "
+done
+echo "$(date +%T) plan: ${plan}${total} s in all; ${dry:-GPU}"
 echo "flags of every timed run: ${base[*]} ${gpu[*]}"
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available() and \
 torch.cuda.get_device_name(0))"
 command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv,noheader
 
-part_start items "$budget_items"
-mkdir -p "$work/items"
-(cd "$work/items" && exec timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
-  --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
-  "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
-wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
-[ -f "$out/items.csv" ] && cat "$out/items.csv"
-archive
+part_items() {
+  mkdir -p "$work/items"
+  (cd "$work/items" && exec timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
+    --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
+    "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
+  wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
+  [ -f "$out/items.csv" ] && cat "$out/items.csv"
+}
 
-part_start exact "$budget_exact"
-(cd "$root" && R2N_TEST_CUDA=1 exec timeout -s KILL "$budget_exact" "$py" -m pytest -q -p no:cacheprovider \
-  tests/test_cuda_graph.py -n "$exact_workers" --junitxml="$work/exact.xml" > "$work/exact.log" 2>&1) &
-wait $!
-echo "exact: pytest exit $? (137: cut off at its budget): $(tail -1 "$work/exact.log")"
-if [ -f "$work/exact.xml" ]; then
-  "$py" "$helper" exact "$work/exact.xml" "$out/exact.csv"
-else
-  tail -20 "$work/exact.log" > "$out/exact.csv"
-fi
-archive
+part_actor() {
+  timeout -s KILL "$budget_actor" "$py" "$root/results/gpu-speed/actor_step.py" "${actor_flags[@]}" \
+    > "$out/actor.txt" 2>&1 &
+  wait $! || echo "actor: exit $? (137: cut off at its budget)"
+  cat "$out/actor.txt"
+}
 
-part_start window "$budget_window"
-run "$work/window" window "$budget_window" "${window_flags[@]}"
-wait_runs
-"$py" "$helper" window "$work/window/runs/window" "$work/window/window.log" "$out/window.json" \
-  --from-step "${window_steps[0]}" --to-step "${window_steps[1]}" --feedback-steps "${window_rounds[@]}" \
-  || echo "window: no result; the log's end: $(tail -3 "$work/window/window.log")"
-# the same flags as the aggregate's runs: its early steps are the one-run row without MPS
-"$py" "$helper" rates "$work/window" "$out/aggregate.csv" --name x1-window --mps no --from-step "${agg_steps[0]}" \
-  --to-step "${agg_steps[1]}"
-archive
+part_exact() {
+  (cd "$root" && R2N_TEST_CUDA=1 exec timeout -s KILL "$budget_exact" "$py" -m pytest -q -p no:cacheprovider \
+    tests/test_cuda_graph.py -n "$exact_workers" --junitxml="$work/exact.xml" > "$work/exact.log" 2>&1) &
+  wait $!
+  echo "exact: pytest exit $? (137: cut off at its budget): $(tail -1 "$work/exact.log")"
+  if [ -f "$work/exact.xml" ]; then
+    "$py" "$helper" exact "$work/exact.xml" "$out/exact.csv"
+  else
+    tail -20 "$work/exact.log" > "$out/exact.csv"
+  fi
+}
+
+part_window() {
+  run "$work/window" window "$budget_window" "${window_flags[@]}"
+  wait_runs
+  "$py" "$helper" window "$work/window/runs/window" "$work/window/window.log" "$out/window.json" \
+    --from-step "${window_steps[0]}" --to-step "${window_steps[1]}" --feedback-steps "${window_rounds[@]}" \
+    || echo "window: no result; the log's end: $(tail -3 "$work/window/window.log")"
+  # the same flags as the aggregate's runs: its early steps are the one-run row without MPS
+  "$py" "$helper" rates "$work/window" "$out/aggregate.csv" --name x1-window --mps no --from-step "${agg_steps[0]}" \
+    --to-step "${agg_steps[1]}"
+}
 
 config() {  # mps (yes or no), name, runs, flags...: runs started together, then their row of aggregate.csv
   local mps=$1 name=$2 n=$3
@@ -175,10 +198,18 @@ config() {  # mps (yes or no), name, runs, flags...: runs started together, then
   archive
 }
 
-part_start aggregate "$budget_aggregate"
-part_end=$((SECONDS + budget_aggregate))
-for c in "${configs[@]}"; do
-  config $c
+part_aggregate() {
+  part_end=$((SECONDS + budget_aggregate))
+  for c in "${configs[@]}"; do
+    config $c
+  done
+  mps_quit
+  [ -f "$out/aggregate.csv" ] && cat "$out/aggregate.csv"
+}
+
+for part in "${parts[@]}"; do
+  budget="budget_$part"
+  part_start "$part" "${!budget}"
+  "part_$part"
+  archive
 done
-mps_quit
-[ -f "$out/aggregate.csv" ] && cat "$out/aggregate.csv"
