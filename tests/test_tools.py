@@ -1324,6 +1324,32 @@ def test_stored_noise_scripts_reproduce_the_protocol_and_wait_for_every_run(tmp_
     assert f"achieved, H1 (the stored arms' pooled SD): SD {pooled:.1f}." in achieved, achieved
 
 
+def test_noise_sensitivity_is_zero_for_a_policy_blind_to_the_noise(tmp_path):
+    """noise_sensitivity.py: the redraws' share of the variance is 0 for values that differ only between states and 1
+    for values that differ only between redraws; from a checkpoint, 0 for an actor whose noise weights are zero and
+    more than 0 for the same actor with them."""
+    study = stored_noise_module("noise_sensitivity")
+    states = np.arange(6.0)[:, None, None] * np.ones((6, 4, 2))
+    assert study.noise_share(states) == 0.0
+    assert study.noise_share(np.random.default_rng(0).normal(size=(1, 4, 2)).repeat(6, 0)) == pytest.approx(1.0)
+    import sac
+    import torch
+
+    args = sac.Args(env_id="cheetah-run", noise=0.9, hidden_dim=16)
+    obs_dim, act_dim = 171, 6
+    torch.manual_seed(0)
+    agent = sac.make_agent(obs_dim, act_dim, args, torch.device("cpu"))
+    shares = []
+    for blind in (False, True):  # the zeroing stays: the blind actor second
+        if blind:
+            with torch.no_grad():
+                agent.actor.net[0].weight[:, 17:] = 0  # cheetah-run has 17 real features
+        path = str(tmp_path / f"blind{blind}.cleanrl_model")
+        sac.save_checkpoint(path, args, 0, {"agent": agent}, (17, obs_dim, act_dim))
+        shares.append(study.sensitivity(path, "sac", episodes=1, redraws=3, seed=1)["action"])
+    assert shares[0] > 0.01 and shares[1] < 1e-9  # 0 up to the batched matmul's rounding
+
+
 def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
     """`bash results/stored-noise/analyze.sh` reads no test before the 22 primary runs are in: with 21 it stops with
     one line saying how many are in, and writes nothing."""
