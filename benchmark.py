@@ -214,7 +214,7 @@ class Args:
     """runs sharing one GPU (local: slots per GPU; slurm: runs packed into one GPU job)"""
     mps: bool = False
     """runs that share a GPU go through a CUDA MPS daemon, started before the first run and quit after the last
-    (local: one for the sweep; slurm: one per array task). 8 runs on one H100 went 1.77x as fast with it
+    (local: one for the sweep; slurm: one per array task). 8 runs on one H100 went 2.2x as fast with it
     (results/gpu-speed). Needs `nvidia-cuda-mps-control`, which comes with NVIDIA's driver"""
     threads: int = 1
     """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""

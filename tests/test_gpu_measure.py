@@ -41,6 +41,9 @@ def test_rates_of_runs_at_once_are_summed_and_timed_over_their_overlap(tmp_path)
     # both in the window from t=100.5 (run2's start) to t=103 (run1's end): 250 + 125 steps in 2.5 s
     assert float(row["overlap_seconds"]) == 2.5
     assert float(row["overlap_steps_per_s"]) == 150.0
+    # both logging from t=99 (run1's first point) to t=103 (run1's last): run1 400 steps, run2 200 (2125 to 2325)
+    assert float(row["alive_seconds"]) == 4.0
+    assert float(row["alive_steps_per_s"]) == 150.0
     assert row["per_run"] == "run1:100.0 run2:50.0"
 
 
@@ -51,7 +54,7 @@ def test_a_run_cut_off_inside_the_window_shortens_it_for_all():
     assert result["per_run"] == {"a": pytest.approx(100.0), "b": pytest.approx(25.0)}
     # windows that never overlap in wall time: summed, but no rate of the runs together
     result = measure.window_rates({"a": [(1, 0.0), (2, 1.0)], "b": [(1, 5.0), (2, 6.0)]}, 1, 2)
-    assert result["sum"] == 2.0 and result["overlap_rate"] is None
+    assert result["sum"] == 2.0 and result["overlap_rate"] is None and result["alive_rate"] is None
 
 
 def test_window_shares_of_evaluations_state_writes_and_feedback_rounds(tmp_path):

@@ -6,8 +6,8 @@
   item's start and end marks (a GPU waiting for the host counts in it). Only steps of the window count, and none
   holding an evaluation, a feedback round or a state write.
 - `rates`: the steady-state steps/s of the runs of one configuration (runs that ran at once), each over the same step
-  window, from the wall times of its `losses/qf_loss` points; their sum, and the rate over the wall-clock span in
-  which every run was inside the window.
+  window, from the wall times of its `losses/qf_loss` points; their sum, the rate over the wall-clock span in
+  which every run was inside the window, and the rate over the span in which every run was logging (any phase).
 - `window`: one run's steps/s over a step window, and the evaluations' and state writes' shares of its seconds.
 - `exact`: the pass/fail table of a JUnit XML report (the eager-against-captured tests).
 """
@@ -58,7 +58,8 @@ def steps_at(pts: list, wall: float) -> float:
 def window_rates(runs: dict, first: int, last: int) -> dict:
     """Steady-state rates of runs that ran at once, each from step `first` to `last`. `runs`: name -> points.
     Returns each run's rate, their sum, and the rate of all runs together over the span where each was in the
-    window (None when the windows do not overlap: the sum then overstates what ran at once)."""
+    window (None when the windows do not overlap: the sum then overstates what ran at once), and the rate of all runs
+    together over the span in which every run was logging, whatever its phase (`alive_rate`)."""
     reached = [max(s for s, _ in pts) for pts in runs.values() if pts]
     if reached and first < min(reached) < last:  # a run cut off inside the window: the window all runs finished
         last = min(reached)  # the runs log at the same steps: each has a point there
@@ -76,6 +77,13 @@ def window_rates(runs: dict, first: int, last: int) -> dict:
         if end > start:
             steps = sum(steps_at(runs[n], end) - steps_at(runs[n], start) for n in per_run)
             result.update(overlap_seconds=end - start, overlap_rate=steps / (end - start))
+    logging = [pts for pts in runs.values() if len(pts) > 1]
+    result.update(alive_seconds=0.0, alive_rate=None)
+    if logging:
+        start, end = max(pts[0][1] for pts in logging), min(pts[-1][1] for pts in logging)
+        if end > start:
+            steps = sum(steps_at(pts, end) - steps_at(pts, start) for pts in logging)
+            result.update(alive_seconds=end - start, alive_rate=steps / (end - start))
     return result
 
 
@@ -366,6 +374,8 @@ def main():
                    sum_steps_per_s=round(result["sum"], 1),
                    overlap_steps_per_s=None if result["overlap_rate"] is None else round(result["overlap_rate"], 1),
                    overlap_seconds=round(result["overlap_seconds"], 1),
+                   alive_steps_per_s=None if result["alive_rate"] is None else round(result["alive_rate"], 1),
+                   alive_seconds=round(result["alive_seconds"], 1),
                    per_run=" ".join(f"{n}:{r:.1f}" for n, r in result["per_run"].items()))
         append_csv(args.out, row)
         print(", ".join(f"{k}={v}" for k, v in row.items()))
