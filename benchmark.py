@@ -22,7 +22,8 @@ Choices where the issue is silent:
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
   One local launcher per log folder (a lock on `{log_dir}/.launcher.lock`): a second would run the same runs again.
-  `--mps`: one CUDA MPS daemon for the sweep (one per array task on SLURM), in a private temporary folder.
+  `--mps`: one CUDA MPS daemon for the sweep (one per array task on SLURM), in a private temporary folder; it sees
+  the `--gpus`, and each run's CUDA_VISIBLE_DEVICES is its GPU's position among them, as MPS clients count.
   Local runs are in sessions of their own: Ctrl-C, SIGTERM or SIGHUP reach the launcher only, which stops them with
   SIGTERM (they save their state), and on Linux they get SIGTERM when the launcher dies, however it dies.
 - SLURM back-end (submitit, extra `slurm`): one job array; each array task runs `--runs-per-gpu` runs at once on one
@@ -396,26 +397,33 @@ def launch(spec: dict, gpu: Optional[str] = None, own_session: bool = False) -> 
 
 
 @contextlib.contextmanager
-def mps_daemon(enabled: bool):
-    """A CUDA MPS control daemon for the runs started inside, quit on the way out however it is left. Its pipe and log
-    folder is a private one on this node, so it neither meets another user's daemon nor needs a shared file system.
-    The runs find it through `CUDA_MPS_PIPE_DIRECTORY`, set in this process's environment while inside."""
+def mps_daemon(enabled: bool, devices: Optional[str] = None):
+    """A CUDA MPS control daemon for the runs started inside, quit when the block ends by return or exception
+    (a launcher killed outright leaves it running). Its pipe and log folder is a private one on this node, so it
+    neither meets another user's daemon nor needs a shared file system. The runs find it through
+    `CUDA_MPS_PIPE_DIRECTORY`, set in this process's environment while inside.
+
+    The daemon sees `devices` (a CUDA_VISIBLE_DEVICES list; default: this process's). An MPS server numbers the devices
+    it sees from 0, and a client's CUDA_VISIBLE_DEVICES counts within them: so while inside, the runs inherit none,
+    and a run given a GPU slot is given its position in `devices` (`run_local`)."""
     if not enabled:
         yield
         return
     folder = tempfile.mkdtemp(prefix="r2n-mps-")
     daemon_env = dict.fromkeys(("CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY"), folder)
+    seen = {"CUDA_VISIBLE_DEVICES": devices} if devices else {}
     try:
-        started = subprocess.run(["nvidia-cuda-mps-control", "-d"], env=os.environ | daemon_env).returncode
-    except FileNotFoundError:
+        started = subprocess.run(["nvidia-cuda-mps-control", "-d"], env=os.environ | daemon_env | seen).returncode
+    except OSError:
         started = "not found"
     if started != 0:
         shutil.rmtree(folder, ignore_errors=True)
         fail(f"--mps: the MPS daemon did not start (nvidia-cuda-mps-control -d: "
              f"{started if isinstance(started, str) else f'exit code {started}'})")
-    before = {name: os.environ.get(name) for name in daemon_env}
+    before = {name: os.environ.get(name) for name in (*daemon_env, "CUDA_VISIBLE_DEVICES")}
     os.environ.update(daemon_env)
-    print(f"MPS daemon started ({folder})", flush=True)
+    os.environ.pop("CUDA_VISIBLE_DEVICES", None)
+    print(f"MPS daemon started ({folder}; devices {devices or before['CUDA_VISIBLE_DEVICES'] or 'all'})", flush=True)
     try:
         yield
     finally:
@@ -423,7 +431,7 @@ def mps_daemon(enabled: bool):
         print("MPS daemon quit", flush=True)
         for name, value in before.items():
             if value is None:
-                os.environ.pop(name)
+                os.environ.pop(name, None)
             else:
                 os.environ[name] = value
         shutil.rmtree(folder, ignore_errors=True)
@@ -599,7 +607,8 @@ def run_local(runs: list, args: Args) -> list:
             while pending and len(active) < workers:
                 run, gpu = pending.popleft(), slots.popleft() if slots is not None else None
                 spec = spec_of(run, args)
-                active[run.run_id] = (spec, launch(spec, gpu, own_session=True), gpu)
+                visible = str(gpus.index(gpu)) if args.mps and gpu is not None else gpu  # counted within the daemon's
+                active[run.run_id] = (spec, launch(spec, visible, own_session=True), gpu)
                 print(f"started {run.run_id}" + ("" if gpu is None else f" on GPU {gpu}") + f" -> {spec['log']}",
                       flush=True)
             time.sleep(0.05)
@@ -726,7 +735,7 @@ def main(args: Args) -> int:
         print("nothing to run")
         return 0
     if args.backend == "local":
-        with mps_daemon(args.mps):
+        with mps_daemon(args.mps, args.gpus):
             results = run_local(todo, args)
     else:
         results = run_slurm(todo, args)

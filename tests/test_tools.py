@@ -665,9 +665,10 @@ def test_cli_exit_code_and_no_gpus(fake_scripts):
 
 
 FAKE_MPS = """#!/bin/sh
-# a fake nvidia-cuda-mps-control: one line per call (time, arguments, standard input, its pipe folder)
+# a fake nvidia-cuda-mps-control: one line per call (time, argument, standard input, pipe folder, visible devices)
 if [ "$1" = "-d" ]; then input=""; else input=$(cat); fi
-echo "$(python3 -c 'import time; print(time.time())') ${1:-none} ${input:-none} $CUDA_MPS_PIPE_DIRECTORY" >> "$MPS_CALLS"
+echo "$(python3 -c 'import time; print(time.time())') ${1:-none} ${input:-none} $CUDA_MPS_PIPE_DIRECTORY \
+${CUDA_VISIBLE_DEVICES:-none}" >> "$MPS_CALLS"
 exit "${FAKE_MPS_EXIT:-0}"
 """
 
@@ -686,24 +687,29 @@ def fake_mps(tmp_path, monkeypatch):
 
 
 def mps_calls(path) -> list:
-    """(time, argument, input, pipe folder) of each call of the fake daemon control."""
-    return [(float(t), arg, given, folder) for t, arg, given, folder in
+    """(time, argument, input, pipe folder, visible devices) of each call of the fake daemon control."""
+    return [(float(t), arg, given, folder, devices) for t, arg, given, folder, devices in
             (line.split() for line in open(path).read().splitlines())]
 
 
-def test_mps_daemon_serves_the_runs_and_quits_after_the_last(fake_scripts, fake_mps, capsys):
-    """`--mps`: the daemon starts before the first run, every run finds it through CUDA_MPS_PIPE_DIRECTORY, and it is
-    quit after the last run has ended; its private folder goes, and the launcher's environment is as before."""
-    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1,), gpus="0",
-                          runs_per_gpu=2, mps=True, script_dir=fake_scripts)
+def test_mps_daemon_serves_the_runs_and_quits_after_the_last(fake_scripts, fake_mps, capsys, monkeypatch):
+    """`--mps`: the daemon starts before the first run and sees the `--gpus`; every run finds it through
+    CUDA_MPS_PIPE_DIRECTORY and gets its GPU's position among them (an MPS server numbers its devices from 0); the
+    daemon is quit after the last run has ended; its private folder goes, and the launcher's environment is as
+    before."""
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
+    args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1,), gpus="4,5",
+                          mps=True, script_dir=fake_scripts)
     assert benchmark.main(args) == 0
-    (start, arg, _, folder), (end, quit_arg, given, quit_folder) = mps_calls(fake_mps)
-    assert (arg, quit_arg, given) == ("-d", "none", "quit") and quit_folder == folder
+    (start, arg, _, folder, devices), (end, quit_arg, given, quit_folder, _) = mps_calls(fake_mps)
+    assert (arg, quit_arg, given, devices) == ("-d", "none", "quit", "4,5") and quit_folder == folder
     views = [child_view(r.run_id) for r in benchmark.expand(args)]
-    assert all(v["mps"] == folder for v in views)
+    assert all(v["mps"] == folder for v in views) and [v["cuda"] for v in views] == ["0", "1"]
     assert start < min(v["start"] for v in views) and max(v["end"] for v in views) < end
     assert not os.path.exists(folder) and "CUDA_MPS_PIPE_DIRECTORY" not in os.environ
-    assert "MPS daemon started" in capsys.readouterr().out
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "4,5"
+    output = capsys.readouterr().out
+    assert "MPS daemon started" in output and "on GPU 4" in output and "on GPU 5" in output
 
 
 def test_mps_daemon_that_does_not_start_stops_the_sweep_before_any_run(fake_scripts, fake_mps, monkeypatch):
@@ -717,16 +723,20 @@ def test_mps_daemon_that_does_not_start_stops_the_sweep_before_any_run(fake_scri
         benchmark.main(args)
 
 
-def test_a_slurm_task_with_mps_runs_its_group_through_one_daemon(fake_scripts, fake_mps, tmp_path):
-    """On SLURM the daemon is the array task's: started before its runs, quit after them, and kept on a requeue."""
+def test_a_slurm_task_with_mps_runs_its_group_through_one_daemon(fake_scripts, fake_mps, monkeypatch):
+    """On SLURM the daemon is the array task's, started before its runs and quit after them. It sees the job's GPU;
+    the runs see all of the daemon's (none named: a job's physical index would not count within the daemon's)."""
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "3")
     args = benchmark.Args(methods=("pebble", "r2n_pebble"), env_ids=("cheetah-run",), seeds=(1,), script_dir=fake_scripts)
     os.makedirs("logs")
     specs = [benchmark.spec_of(run, args) for run in benchmark.expand(args)]
     results = benchmark.RunGroup(mps=True)(specs)
     assert [code for _, code, _ in results] == [0, 0]
-    (_, arg, _, folder), (_, _, given, _) = mps_calls(fake_mps)
-    assert (arg, given) == ("-d", "quit")
+    (_, arg, _, folder, devices), (_, _, given, _, _) = mps_calls(fake_mps)
+    assert (arg, given, devices) == ("-d", "quit", "3")
     assert all(child_view(spec["run_id"])["mps"] == folder for spec in specs)
+    assert all(child_view(spec["run_id"])["cuda"] is None for spec in specs)
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "3"
 
 
 

@@ -1,5 +1,5 @@
 """The actor's step with and without the critics' weight gradients, timed in one run, interleaved:
-`python results/gpu-speed/actor_step.py [--hidden-dim 1024] [--batch-size 1024] [--repeats 15] [--cuda]`.
+`python results/gpu-speed/actor_step.py [--hidden-dim 1024] [--batch-size 1024] [--repeats 15] [--cuda] [--tf32]`.
 
 `actor_gradients` (r2n_pebble.py) asks autograd for the actor's gradients alone. The full backward pass it replaced
 also computed the critics' weight gradients, which nothing reads. Prints the median seconds of each and their ratio.
@@ -32,8 +32,10 @@ def main():
     parser.add_argument("--batch-size", type=int, default=1024)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--cuda", action="store_true")
+    parser.add_argument("--tf32", action="store_true", help="TF32 matmuls, as the scripts' --tf32")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    torch.backends.cuda.matmul.allow_tf32 = args.tf32
     device = torch.device("cuda" if args.cuda else "cpu")
     torch.manual_seed(0)
     agent = r2n_pebble.make_agent(OBS_DIM, ACT_DIM, r2n_pebble.Args(hidden_dim=args.hidden_dim), device)
@@ -52,7 +54,8 @@ def main():
             if i >= 3:
                 seconds[name].append(time.perf_counter() - start)
     full, actor = (statistics.median(seconds[name]) for name in steps)
-    print(f"{args.hidden_dim} wide, batch {args.batch_size}, {device}: full backward {1e3 * full:.2f} ms, "
+    print(f"{args.hidden_dim} wide, batch {args.batch_size}, {device}{', TF32' if args.tf32 else ''}: "
+          f"full backward {1e3 * full:.2f} ms, "
           f"actor only {1e3 * actor:.2f} ms, ratio {full / actor:.3f}")
 
 

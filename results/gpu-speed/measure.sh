@@ -11,8 +11,9 @@
 #              -> aggregate.csv (one row per configuration, written as each ends)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
-# PARTS="items window": only these parts, in the order written above (default: all).
-# EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them).
+# PARTS="items window": only these parts, in the order PARTS lists them (default: all, in the order above).
+# EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them); of them, the actor
+# part takes --tf32.
 set -u
 out=${1:?usage: measure.sh OUT [--dry-run]}
 dry=${2:-}
@@ -67,6 +68,7 @@ else
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 gpu+=(${EXTRA_FLAGS:-})
+[[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
 parts=(${PARTS:-items actor exact window aggregate})
 total=0
 for part in "${parts[@]}"; do
