@@ -413,13 +413,13 @@ def mps_daemon(enabled: bool, devices: Optional[str] = None):
     daemon_env = dict.fromkeys(("CUDA_MPS_PIPE_DIRECTORY", "CUDA_MPS_LOG_DIRECTORY"), folder)
     seen = {"CUDA_VISIBLE_DEVICES": devices} if devices else {}
     try:
-        started = subprocess.run(["nvidia-cuda-mps-control", "-d"], env=os.environ | daemon_env | seen).returncode
+        code = subprocess.run(["nvidia-cuda-mps-control", "-d"], env=os.environ | daemon_env | seen).returncode
+        failure = f"exit code {code}" if code else None
     except OSError:
-        started = "not found"
-    if started != 0:
+        failure = "not found"
+    if failure:
         shutil.rmtree(folder, ignore_errors=True)
-        fail(f"--mps: the MPS daemon did not start (nvidia-cuda-mps-control -d: "
-             f"{started if isinstance(started, str) else f'exit code {started}'})")
+        fail(f"--mps: the MPS daemon did not start (nvidia-cuda-mps-control -d: {failure})")
     before = {name: os.environ.get(name) for name in (*daemon_env, "CUDA_VISIBLE_DEVICES")}
     os.environ.update(daemon_env)
     os.environ.pop("CUDA_VISIBLE_DEVICES", None)

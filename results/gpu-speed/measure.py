@@ -55,6 +55,18 @@ def steps_at(pts: list, wall: float) -> float:
     raise ValueError(f"wall time {wall} outside the points")
 
 
+def together(point_lists: list, spans: list) -> tuple:
+    """(seconds, steps/s) of runs together over the span in which each was inside its own (start, end) span:
+    (0.0, None) when the spans do not overlap."""
+    if not point_lists:
+        return 0.0, None
+    start, end = max(a for a, _ in spans), min(b for _, b in spans)
+    if end <= start:
+        return 0.0, None
+    steps = sum(steps_at(pts, end) - steps_at(pts, start) for pts in point_lists)
+    return end - start, steps / (end - start)
+
+
 def window_rates(runs: dict, first: int, last: int) -> dict:
     """Steady-state rates of runs that ran at once, each from step `first` to `last`. `runs`: name -> points.
     Returns each run's rate, their sum, and the rate of all runs together over the span where each was in the
@@ -70,21 +82,12 @@ def window_rates(runs: dict, first: int, last: int) -> dict:
         except KeyError:
             continue  # cut off before the window's end, or never started
         per_run[name] = (last - first) / (spans[name][1] - spans[name][0])
-    result = dict(last=last, per_run=per_run, runs_in_window=len(per_run), runs=len(runs), sum=sum(per_run.values()),
-                  overlap_seconds=0.0, overlap_rate=None)
-    if per_run:
-        start, end = max(a for a, _ in spans.values()), min(b for _, b in spans.values())
-        if end > start:
-            steps = sum(steps_at(runs[n], end) - steps_at(runs[n], start) for n in per_run)
-            result.update(overlap_seconds=end - start, overlap_rate=steps / (end - start))
+    overlap_seconds, overlap_rate = together([runs[n] for n in per_run], [spans[n] for n in per_run])
     logging = [pts for pts in runs.values() if len(pts) > 1]
-    result.update(alive_seconds=0.0, alive_rate=None)
-    if logging:
-        start, end = max(pts[0][1] for pts in logging), min(pts[-1][1] for pts in logging)
-        if end > start:
-            steps = sum(steps_at(pts, end) - steps_at(pts, start) for pts in logging)
-            result.update(alive_seconds=end - start, alive_rate=steps / (end - start))
-    return result
+    alive_seconds, alive_rate = together(logging, [(pts[0][1], pts[-1][1]) for pts in logging])
+    return dict(last=last, per_run=per_run, runs_in_window=len(per_run), runs=len(runs), sum=sum(per_run.values()),
+                overlap_seconds=overlap_seconds, overlap_rate=overlap_rate, alive_seconds=alive_seconds,
+                alive_rate=alive_rate)
 
 
 def log_seconds(text: str, first: int, last: int) -> tuple:

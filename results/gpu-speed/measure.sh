@@ -71,10 +71,12 @@ gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
 parts=(${PARTS:-items actor exact window aggregate})
 total=0
+plan=""
 for part in "${parts[@]}"; do
   budget="budget_$part"
   [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items actor exact window aggregate)"; exit 2; }
   total=$((total + ${!budget}))
+  plan+="$part ${!budget} s, "
 done
 
 mps_on=0
@@ -117,11 +119,6 @@ part_start() {
   echo "$(date +%T) [$SECONDS s] part $1 (budget $2 s)"
 }
 
-plan=""
-for part in "${parts[@]}"; do
-  budget="budget_$part"
-  plan+="$part ${!budget} s, "
-done
 echo "$(date +%T) plan: ${plan}${total} s in all; ${dry:-GPU}"
 echo "flags of every timed run: ${base[*]} ${gpu[*]}"
 "$py" -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available() and \
