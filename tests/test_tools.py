@@ -1360,6 +1360,18 @@ def test_noise_sensitivity_is_zero_for_a_policy_blind_to_the_noise(tmp_path):
     assert shares[0] > 0.01 and shares[1] < 1e-9  # 0 up to the batched matmul's rounding
 
 
+STORED_NOISE_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis", "primary.csv")
+
+
+def test_stored_noise_tables_are_committed_once_every_primary_run_is_in():
+    """Once the 22 primary runs of the stored-noise study are committed, so is its analysis (`analyze.sh`): the
+    table check below then runs on it. Before, the analysis must not exist, since the protocol reads no test."""
+    landed = len(glob.glob(os.path.join(ROOT, "results", "stored-noise", "runs", "*", "done")))
+    assert landed <= 22
+    assert os.path.exists(STORED_NOISE_TABLE) == (landed == 22), \
+        f"{landed} of 22 runs are in: run `bash results/stored-noise/analyze.sh` once all are, and commit analysis/"
+
+
 def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
     """`bash results/stored-noise/analyze.sh` reads no test before the 22 primary runs are in: with 21 it stops with
     one line saying how many are in, and writes nothing."""
@@ -1380,6 +1392,11 @@ def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
     (("results/early-stop",), "results/early-stop/analysis", "pebble_no_early_stop", ()),
     (("results/early-stop", "results/cpu-study/r2n_pebble__cartpole-swingup__noise0.9__budget400__seed*"),
      "results/early-stop/analysis-h2", "r2n_pebble", ("pebble_no_early_stop=pebble_no_early_stop",)),
+    pytest.param(("results/stored-noise/runs",), "results/stored-noise/analysis", "pebble",
+                 ("r2n_pebble_stored_noise=pebble_stored_noise", "sac_stored_noise=sac_stored_noise",
+                  "anf_sac_stored_noise=sac_stored_noise"),
+                 marks=pytest.mark.skipif(not os.path.exists(STORED_NOISE_TABLE),
+                                          reason="the stored-noise study's runs are under way")),
 ])
 def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log_dirs, output_dir, baseline,
                                                                    baseline_for):

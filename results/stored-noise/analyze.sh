@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Regenerates every table, curve and connectivity figure of the stored-noise study and prints H2's test and the power
-# achieved: the commands of PROTOCOL.md ("Analysis commands"), in its order. It refuses until all 22 primary runs
-# are in (the protocol reads no test before); the probes' descriptive table comes once their 9 runs are in.
+# Regenerates every table, curve and connectivity figure of the stored-noise study, H2's test and the power achieved
+# (analysis/interaction.txt, analysis/power-achieved.txt): the commands of PROTOCOL.md ("Analysis commands"), in its
+# order. It refuses until all 22 primary runs are in (the protocol reads no test before); the probes' descriptive
+# table comes once their 9 runs are in.
 # Run from the repository root: bash results/stored-noise/analyze.sh
 set -euo pipefail
 landed=$(ls results/stored-noise/runs/*/done 2>/dev/null | wc -l)
@@ -12,8 +13,9 @@ fi
 python analyze.py --log-dirs results/stored-noise/runs --output-dir results/stored-noise/analysis --primary-last 3 \
     --baseline-for r2n_pebble_stored_noise=pebble_stored_noise sac_stored_noise=sac_stored_noise \
     anf_sac_stored_noise=sac_stored_noise
-python results/stored-noise/interaction.py
-python results/stored-noise/power.py --achieved
+# H2's test and the power achieved are kept beside the tables
+python results/stored-noise/interaction.py | tee results/stored-noise/analysis/interaction.txt
+python results/stored-noise/power.py --achieved | tee results/stored-noise/analysis/power-achieved.txt
 probes=$(ls results/stored-noise/probes/*/done 2>/dev/null | wc -l)
 if [ "$probes" -eq 9 ]; then
     python analyze.py --log-dirs results/cheetah-study results/stored-noise/probes \
