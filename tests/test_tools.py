@@ -12,6 +12,7 @@ import os
 import re
 import shlex
 import signal
+import shutil
 import subprocess
 import sys
 import time
@@ -1361,6 +1362,47 @@ def test_noise_sensitivity_is_zero_for_a_policy_blind_to_the_noise(tmp_path):
 
 
 STORED_NOISE_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis", "primary.csv")
+
+
+@needs_analysis
+def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
+    """`analyze.sh` in a copy of the repository whose stored-noise runs are synthetic (the cheetah study's are the
+    committed ones): it writes the tables, H2's test and the power achieved into analysis/, and H2 reads R2N's gain
+    with the noise stored from these runs."""
+    study = tmp_path / "results" / "stored-noise"
+    study.mkdir(parents=True)
+    for name in ("analyze.sh", "interaction.py", "power.py"):
+        shutil.copy(os.path.join(ROOT, "results", "stored-noise", name), study / name)
+    os.symlink(os.path.join(ROOT, "results", "cheetah-study"), tmp_path / "results" / "cheetah-study")
+    os.symlink(os.path.join(ROOT, "analyze.py"), tmp_path / "analyze.py")
+    rng = np.random.default_rng(0)
+    arms = {"pebble_stored_noise": (1000, 8, 100), "r2n_pebble_stored_noise": (1000, 8, 150),
+            "sac_stored_noise": (None, 3, 90), "anf_sac_stored_noise": (None, 3, 380)}
+    primary = {}
+    for method, (budget, seeds, offset) in arms.items():
+        primary[method] = values(rng, seeds, offset)
+        for seed, value in enumerate(primary[method], 1):
+            folder = study / "runs" / f"{method}__cheetah-run__noise0.9__budget{budget or 'none'}__seed{seed}"
+            hparams = dict(BASE_HPARAMS, exp_name=method, seed=seed, env_id="cheetah-run", noise=0.9,
+                           max_feedback=budget, noise_resample=False)
+            writer = SummaryWriter(str(folder))
+            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % "\n".join(f"|{k}|{v}|" for k, v in hparams.items()))
+            for step, at_step in ((220_000, 0.0), (230_000, value - 1), (240_000, value), (250_000, value + 1)):
+                writer.add_scalar("eval/episodic_return", at_step, step)  # the last 3 average to `value`
+            writer.close()
+            (folder / "done").write_text("exit code 0\n")
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], MPLBACKEND="Agg")
+    result = subprocess.run(["bash", str(study / "analyze.sh")], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "the probes: 0 of 9 runs are in" in result.stdout
+    with open(study / "analysis" / "primary.csv") as f:
+        assert {row["method"] for row in csv.DictReader(f)} == set(arms)
+    gain = primary["r2n_pebble_stored_noise"].mean() - primary["pebble_stored_noise"].mean()
+    interaction_txt = (study / "analysis" / "interaction.txt").read_text()
+    assert f"R2N's gain: stored {gain:+.1f}," in interaction_txt, interaction_txt
+    assert "H2: D = " in interaction_txt and "exact permutation p " in interaction_txt
+    power_txt = (study / "analysis" / "power-achieved.txt").read_text()
+    assert "achieved, H1 (the stored arms' pooled SD)" in power_txt and "achieved, H2" in power_txt, power_txt
 
 
 def test_stored_noise_tables_are_committed_once_every_primary_run_is_in():

@@ -5,9 +5,10 @@
 # table comes once their 9 runs are in.
 # Run from the repository root: bash results/stored-noise/analyze.sh
 set -euo pipefail
-landed=$(ls results/stored-noise/runs/*/done 2>/dev/null | wc -l)
-if [ "$landed" -ne 22 ]; then
-    echo "results/stored-noise/analyze.sh: $landed of the 22 primary runs are in; the protocol reads no test before" >&2
+shopt -s nullglob  # a pattern that matches nothing counts 0 files
+done_files=(results/stored-noise/runs/*/done)
+if [ "${#done_files[@]}" -ne 22 ]; then
+    echo "results/stored-noise/analyze.sh: ${#done_files[@]} of the 22 primary runs are in; the protocol reads no test before" >&2
     exit 1
 fi
 python analyze.py --log-dirs results/stored-noise/runs --output-dir results/stored-noise/analysis --primary-last 3 \
@@ -16,10 +17,10 @@ python analyze.py --log-dirs results/stored-noise/runs --output-dir results/stor
 # H2's test and the power achieved are kept beside the tables
 python results/stored-noise/interaction.py | tee results/stored-noise/analysis/interaction.txt
 python results/stored-noise/power.py --achieved | tee results/stored-noise/analysis/power-achieved.txt
-probes=$(ls results/stored-noise/probes/*/done 2>/dev/null | wc -l)
-if [ "$probes" -eq 9 ]; then
+probe_done_files=(results/stored-noise/probes/*/done)
+if [ "${#probe_done_files[@]}" -eq 9 ]; then
     python analyze.py --log-dirs results/cheetah-study results/stored-noise/probes \
         --output-dir results/stored-noise/analysis-probes --primary-last 3
 else
-    echo "the probes: $probes of 9 runs are in; their table comes when all are"
+    echo "the probes: ${#probe_done_files[@]} of 9 runs are in; their table comes when all are"
 fi
