@@ -54,13 +54,19 @@ BASE_HPARAMS = dict(exp_name=None, seed=None, torch_deterministic=True, cuda=Tru
                     total_timesteps=5000, batch_size=1024, max_feedback=None, reward_lr=0.003, eval_freq=1000)
 
 
-def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, **overrides):
-    """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags)."""
+def hparams_writer(path, env_id, noise, budget, method, seed, **overrides) -> SummaryWriter:
+    """A run's event writer that has written the hyperparameter table, as the scripts do first."""
     hparams = dict(BASE_HPARAMS, exp_name=method, seed=seed, env_id=env_id, noise=noise, max_feedback=budget)
     hparams.update(overrides)
-    path = os.path.join(root, f"{env_id}__{method}__{seed}__{stamp}")
     writer = SummaryWriter(path)
     writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % ("\n".join(f"|{k}|{v}|" for k, v in hparams.items())))
+    return writer
+
+
+def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, **overrides):
+    """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags)."""
+    path = os.path.join(root, f"{env_id}__{method}__{seed}__{stamp}")
+    writer = hparams_writer(path, env_id, noise, budget, method, seed, **overrides)
     writer.add_scalar("charts/episodic_return", 1.0, 100)
     for i, (step, value) in enumerate(zip(steps, returns)):
         writer.add_scalar("eval/episodic_return", value, step)
@@ -1383,10 +1389,7 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
         primary[method] = values(rng, seeds, offset)
         for seed, value in enumerate(primary[method], 1):
             folder = study / "runs" / f"{method}__cheetah-run__noise0.9__budget{budget or 'none'}__seed{seed}"
-            hparams = dict(BASE_HPARAMS, exp_name=method, seed=seed, env_id="cheetah-run", noise=0.9,
-                           max_feedback=budget, noise_resample=False)
-            writer = SummaryWriter(str(folder))
-            writer.add_text("hyperparameters", "|param|value|\n|-|-|\n%s" % "\n".join(f"|{k}|{v}|" for k, v in hparams.items()))
+            writer = hparams_writer(str(folder), "cheetah-run", 0.9, budget, method, seed, noise_resample=False)
             for step, at_step in ((220_000, 0.0), (230_000, value - 1), (240_000, value), (250_000, value + 1)):
                 writer.add_scalar("eval/episodic_return", at_step, step)  # the last 3 average to `value`
             writer.close()
