@@ -599,11 +599,16 @@ def run_local(runs: list, args: Args) -> list:
     # a signal the launcher was started ignoring (`nohup`) stays ignored
     stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     previous = {signum: signal.getsignal(signum) for signum in stops}
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    # The handler only notes the signal, and the loop stops at its next turn. An exception raised between any two
+    # bytecodes could leave a `Popen` half made, or its wait lock held, and then the cleanup's `wait` blocks forever.
+    asked = []
+    for signum in stops:
         if previous[signum] is not signal.SIG_IGN:
-            signal.signal(signum, interrupt)
+            signal.signal(signum, lambda signum, frame: asked.append(signum))
     try:
         while pending or active:
+            if asked:
+                raise KeyboardInterrupt
             while pending and len(active) < workers:
                 run, gpu = pending.popleft(), slots.popleft() if slots is not None else None
                 spec = spec_of(run, args)
@@ -646,10 +651,6 @@ def run_local(runs: list, args: Args) -> list:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     return results
-
-
-def interrupt(signum, frame):
-    raise KeyboardInterrupt
 
 
 def make_executor(args: Args):

@@ -549,9 +549,10 @@ def test_a_study_run_without_an_event_file_is_not_kept(tmp_path):
     assert os.path.exists(tmp_path / "r.done") and os.path.exists(tmp_path / "results" / "r" / "done")
 
 
-def start_sweep(tmp_path, signum, handler):
+def start_sweep(tmp_path, signum, handler, patch=""):
     """benchmark.py over one fake run that saves its state on SIGTERM, in a process group of its own as a shell starts
-    a job, with `signum` set to `handler`; returns (the launcher, its work folder) once the run is going."""
+    a job, with `signum` set to `handler` and the Python code `patch` run first; returns (the launcher, its work
+    folder) once the run is going."""
     scripts, work = tmp_path / "scripts", tmp_path / "work"
     scripts.mkdir()
     work.mkdir()
@@ -563,8 +564,9 @@ def start_sweep(tmp_path, signum, handler):
         "signal.signal(signal.SIGTERM, stop)\n"
         "open('ready', 'w').close()\n"
         "time.sleep(60)\n")
+    launch = f"{patch}import runpy\nrunpy.run_path({os.path.join(ROOT, 'benchmark.py')!r}, run_name='__main__')\n"
     launcher = subprocess.Popen(
-        [sys.executable, os.path.join(ROOT, "benchmark.py"), "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
+        [sys.executable, "-c", launch, "--methods", "pebble", "--env-ids", "cheetah-run", "--seeds",
          "1", "--script-dir", str(scripts)], cwd=work, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         start_new_session=True, preexec_fn=lambda: signal.signal(signum, handler))
     deadline = time.time() + 60
@@ -586,6 +588,28 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
     assert "interrupted: running runs terminated" in output, output
     log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
     assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
+
+
+def test_a_stop_signal_inside_a_poll_leaves_the_cleanup_able_to_wait(tmp_path):
+    """A signal's handler runs between any two bytecodes. Had it raised right after `Popen.poll` took its wait lock,
+    the lock would stay held and the cleanup's `wait` block forever: the handler only notes the signal."""
+    patch = ("import os, signal, subprocess\n"
+             "poll = subprocess.Popen.poll\n"
+             "def poll_with_a_signal_inside(self):\n"
+             "    if os.path.exists('ready') and self._waitpid_lock.acquire(False):\n"
+             "        os.kill(os.getpid(), signal.SIGTERM)  # handled as this call returns, before the release\n"
+             "        self._waitpid_lock.release()\n"
+             "    return poll(self)\n"
+             "subprocess.Popen.poll = poll_with_a_signal_inside\n")
+    launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL, patch)
+    try:
+        output = launcher.communicate(timeout=60)[0]
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert "interrupted: running runs terminated" in output, output
+    log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
+    assert "state saved on SIGTERM" in log, log
 
 
 def test_one_local_launcher_per_log_folder(fake_scripts, monkeypatch):
