@@ -575,18 +575,25 @@ def start_sweep(tmp_path, signum, handler, patch=""):
     return launcher, work
 
 
-def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
-    """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
-    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
-    launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL)  # as in a terminal, however pytest started
+def end_of_sweep(launcher, work, signum=None):
+    """(the launcher's output, its run's log) once the launcher has ended, after `signum` to its process group if one
+    is given; a launcher still going after 60 s is killed, and the wait fails the test."""
     try:
-        os.killpg(launcher.pid, signal.SIGINT)  # what the terminal does
+        if signum is not None:
+            os.killpg(launcher.pid, signum)
         output = launcher.communicate(timeout=60)[0]
     finally:
         if launcher.poll() is None:
             launcher.kill()
+    return output, (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
+
+
+def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
+    """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
+    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
+    launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL)  # as in a terminal, however pytest started
+    output, log = end_of_sweep(launcher, work, signal.SIGINT)  # what the terminal does
     assert "interrupted: running runs terminated" in output, output
-    log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
     assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
 
 
@@ -602,13 +609,8 @@ def test_a_stop_signal_inside_a_poll_leaves_the_cleanup_able_to_wait(tmp_path):
              "    return poll(self)\n"
              "subprocess.Popen.poll = poll_with_a_signal_inside\n")
     launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL, patch)
-    try:
-        output = launcher.communicate(timeout=60)[0]
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
+    output, log = end_of_sweep(launcher, work)
     assert "interrupted: running runs terminated" in output, output
-    log = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
     assert "state saved on SIGTERM" in log, log
 
 
