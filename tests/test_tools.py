@@ -1398,12 +1398,13 @@ STORED_NOISE_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis", "
 
 @needs_analysis
 def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
-    """`analyze.sh` in a copy of the repository whose stored-noise runs are synthetic (the cheetah study's are the
-    committed ones): it writes the tables, H2's test and the power achieved into analysis/, and H2 reads R2N's gain
-    with the noise stored from these runs."""
+    """`analyze.sh` in a copy of the repository whose stored-noise runs and probes are synthetic (the cheetah study's
+    are the committed ones): it writes the tables, H2's test and the power achieved into analysis/, and H2 reads R2N's
+    gain with the noise stored from these runs. The probes' table sets them beside the cheetah study's arms, and a
+    pebble_repeat run that logs PEBBLE's evaluations again is reported equal to it."""
     study = tmp_path / "results" / "stored-noise"
     study.mkdir(parents=True)
-    for name in ("analyze.sh", "interaction.py", "power.py"):
+    for name in ("analyze.sh", "interaction.py", "power.py", "repeat_check.py"):
         shutil.copy(os.path.join(ROOT, "results", "stored-noise", name), study / name)
     os.symlink(os.path.join(ROOT, "results", "cheetah-study"), tmp_path / "results" / "cheetah-study")
     os.symlink(os.path.join(ROOT, "analyze.py"), tmp_path / "analyze.py")
@@ -1420,10 +1421,34 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
                 writer.add_scalar("eval/episodic_return", at_step, step)  # the last 3 average to `value`
             writer.close()
             (folder / "done").write_text("exit code 0\n")
+    probes = {method: values(rng, 3, 200) for method in ("r2n_pebble_reward_only", "r2n_pebble_agent_as_reward")}
+    for method, returns in probes.items():
+        for seed, value in enumerate(returns, 1):
+            folder = study / "probes" / f"{method}__cheetah-run__noise0.9__budget1000__seed{seed}"
+            writer = hparams_writer(str(folder), "cheetah-run", 0.9, 1000, method, seed, total_timesteps=250_000)
+            writer.add_scalar("eval/episodic_return", value, 250_000)
+            writer.close()
+            (folder / "done").write_text("exit code 0\n")
+    # pebble_repeat seed 1 logs the cheetah study's PEBBLE seed 1 evaluations again
+    [original] = analyze.read_folder(sorted(glob.glob(os.path.join(
+        ROOT, "results", "cheetah-study", "pebble__cheetah-run__noise0.9__budget1000__seed1", "events.out.tfevents.*"))))
+    folder = study / "probes" / "pebble_repeat__cheetah-run__noise0.9__budget1000__seed1"
+    writer = hparams_writer(str(folder), "cheetah-run", 0.9, 1000, "pebble_repeat", 1, total_timesteps=250_000)
+    for step, value in zip(*original.scalars["eval/episodic_return"]):
+        writer.add_scalar("eval/episodic_return", value, step)
+    writer.close()
+    (folder / "done").write_text("exit code 0\n")
     env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"], MPLBACKEND="Agg")
     result = subprocess.run(["bash", str(study / "analyze.sh")], cwd=tmp_path, capture_output=True, text=True, env=env)
     assert result.returncode == 0, result.stderr[-2000:]
-    assert "the probes: 0 of 9 runs are in" in result.stdout
+    assert "the probes: pebble_repeat has 1 of 3 runs in" in result.stdout
+    with open(study / "analysis-probes" / "primary.csv") as f:
+        assert {row["method"] for row in csv.DictReader(f)} == {"pebble", "r2n_pebble", "sac", "anf_sac", "pebble_repeat",
+                                                                *probes}
+    evaluations = len(original.eval_steps)
+    assert (study / "analysis-probes" / "repeat.txt").read_text() == (
+        f"pebble_repeat seed 1 against the cheetah study's pebble seed 1: {evaluations} of {evaluations} shared "
+        "scalars equal, up to step 250000\n")
     with open(study / "analysis" / "primary.csv") as f:
         assert {row["method"] for row in csv.DictReader(f)} == set(arms)
     gain = primary["r2n_pebble_stored_noise"].mean() - primary["pebble_stored_noise"].mean()
@@ -1434,6 +1459,31 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
     assert "achieved, H1 (the stored arms' pooled SD)" in power_txt and "achieved, H2" in power_txt, power_txt
 
 
+@needs_analysis
+def test_repeat_check_names_the_first_scalar_that_differs_and_a_run_under_way(tmp_path, capsys):
+    """`repeat_check.py` compares the scalars a pebble_repeat run shares with the PEBBLE run of its seed: all equal,
+    or the first that differs (by step, then tag); the SPS chart, wall time, is left out; a run under way says so."""
+    repeat_check = stored_noise_module("repeat_check")
+    for method, folder, seeds in (("pebble", "cheetah", (1, 2)), ("pebble_repeat", "probes", (1, 2))):
+        for seed in seeds:
+            writer = hparams_writer(str(tmp_path / folder / f"{method}{seed}"), "cheetah-run", 0.9, 1000, method, seed,
+                                    total_timesteps=30_000)
+            last = 30_000 if method == "pebble" or seed == 1 else 20_000
+            for step in range(10_000, last + 1, 10_000):
+                differs = method == "pebble_repeat" and seed == 1 and step == 20_000
+                writer.add_scalar("eval/episodic_return", step / 100 + (0.5 if differs else 0.0), step)
+                writer.add_scalar("losses/qf_loss", 0.25 + (0.5 if differs else 0.0), step)
+                writer.add_scalar("charts/SPS", 80 if method == "pebble" else 90, step)
+            writer.close()
+    assert repeat_check.main([str(tmp_path / "probes")], cheetah=str(tmp_path / "cheetah")) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "pebble_repeat seed 1 against the cheetah study's pebble seed 1: 4 of 6 shared scalars equal, up to step "
+        "30000; the first that differs: eval/episodic_return at step 20000",
+        "pebble_repeat seed 2 against the cheetah study's pebble seed 2: 4 of 4 shared scalars equal, up to step 20000 "
+        "of 30000 (under way)",
+    ]
+
+
 def test_stored_noise_tables_are_committed_once_every_primary_run_is_in():
     """Once the 22 primary runs of the stored-noise study are committed, so is its analysis (`analyze.sh`): the
     table check below then runs on it. Before, the analysis must not exist, since the protocol reads no test."""
@@ -1441,6 +1491,26 @@ def test_stored_noise_tables_are_committed_once_every_primary_run_is_in():
     assert landed <= 22
     assert os.path.exists(STORED_NOISE_TABLE) == (landed == 22), \
         f"{landed} of 22 runs are in: run `bash results/stored-noise/analyze.sh` once all are, and commit analysis/"
+
+
+PROBES_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis-probes", "primary.csv")
+
+
+def test_probe_table_is_committed_once_the_issue_probes_are_in():
+    """The probes' table (`analyze.sh`) is committed once the 6 runs of the issue's two probe arms are, and not
+    before; its pebble_repeat report then names every committed pebble_repeat run, and only those."""
+    probes = os.path.join(ROOT, "results", "stored-noise", "probes")
+    landed = len(glob.glob(os.path.join(probes, "r2n_pebble_reward_only__*", "done"))
+                 + glob.glob(os.path.join(probes, "r2n_pebble_agent_as_reward__*", "done")))
+    assert landed <= 6
+    assert os.path.exists(PROBES_TABLE) == (landed == 6), \
+        f"{landed} of 6 probes are in: run `bash results/stored-noise/analyze.sh` once all are, and commit analysis-probes/"
+    if landed == 6:
+        repeats = sorted(int(path.split("__seed")[1].split(os.sep)[0])
+                         for path in glob.glob(os.path.join(probes, "pebble_repeat__*", "done")))
+        with open(os.path.join(os.path.dirname(PROBES_TABLE), "repeat.txt")) as f:
+            reported = [int(line.split()[2]) for line in f if line.startswith("pebble_repeat seed ")]
+        assert reported == repeats, "run `bash results/stored-noise/analyze.sh` again and commit analysis-probes/"
 
 
 def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
@@ -1468,6 +1538,9 @@ def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
                   "anf_sac_stored_noise=sac_stored_noise"),
                  marks=pytest.mark.skipif(not os.path.exists(STORED_NOISE_TABLE),
                                           reason="the stored-noise study's runs are under way")),
+    pytest.param(("results/cheetah-study", "results/stored-noise/probes"), "results/stored-noise/analysis-probes",
+                 "pebble", (), marks=pytest.mark.skipif(not os.path.exists(PROBES_TABLE),
+                                                        reason="the stored-noise study's probes are under way")),
 ])
 def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log_dirs, output_dir, baseline,
                                                                    baseline_for):
