@@ -1527,6 +1527,25 @@ def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
     assert not (tmp_path / "results" / "stored-noise" / "analysis").exists()
 
 
+def test_stored_noise_analysis_keeps_the_old_report_when_a_step_fails(tmp_path):
+    """A step of `analyze.sh` that fails after printing leaves the report it would write as it was, and the script
+    stops there: no half-written interaction.txt."""
+    study = tmp_path / "results" / "stored-noise"
+    for seed in range(22):
+        (study / "runs" / f"run{seed}").mkdir(parents=True)
+        (study / "runs" / f"run{seed}" / "done").write_text("exit code 0\n")
+    (tmp_path / "analyze.py").write_text("")  # the tables step succeeds and writes nothing
+    (study / "interaction.py").write_text("print('H2: D = half of it')\nraise SystemExit(1)\n")
+    (study / "analysis").mkdir()
+    (study / "analysis" / "interaction.txt").write_text("the old report\n")
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    result = subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
+                            capture_output=True, text=True, env=env)
+    assert result.returncode == 1
+    assert (study / "analysis" / "interaction.txt").read_text() == "the old report\n"
+    assert not (study / "analysis" / "power-achieved.txt").exists()
+
+
 @pytest.mark.parametrize("log_dirs, output_dir, baseline, baseline_for", [
     (("results/cheetah-study",), "results/cheetah-study/analysis", "pebble",
      ("r2n_pebble=pebble", "sac=sac", "anf_sac=sac")),

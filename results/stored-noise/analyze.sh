@@ -14,9 +14,16 @@ fi
 python analyze.py --log-dirs results/stored-noise/runs --output-dir results/stored-noise/analysis --primary-last 3 \
     --baseline-for r2n_pebble_stored_noise=pebble_stored_noise sac_stored_noise=sac_stored_noise \
     anf_sac_stored_noise=sac_stored_noise
+# keep FILE: runs the command after it and writes its output to FILE, only if it succeeds (no half-written report)
+keep() {
+    local file=$1 output
+    shift
+    output=$("$@")
+    printf '%s\n' "$output" | tee "$file"
+}
 # H2's test and the power achieved are kept beside the tables
-python results/stored-noise/interaction.py | tee results/stored-noise/analysis/interaction.txt
-python results/stored-noise/power.py --achieved | tee results/stored-noise/analysis/power-achieved.txt
+keep results/stored-noise/analysis/interaction.txt python results/stored-noise/interaction.py
+keep results/stored-noise/analysis/power-achieved.txt python results/stored-noise/power.py --achieved
 # The probes' table comes once the issue's two arms are in (3 seeds each); pebble_repeat's runs join it as they land.
 probe_done_files=(results/stored-noise/probes/r2n_pebble_{reward_only,agent_as_reward}__*/done)
 repeat_done_files=(results/stored-noise/probes/pebble_repeat__*/done)
@@ -25,7 +32,7 @@ if [ "${#probe_done_files[@]}" -eq 6 ]; then
         --output-dir results/stored-noise/analysis-probes --primary-last 3
     echo "the probes: pebble_repeat has ${#repeat_done_files[@]} of 3 runs in"
     # does pebble_repeat repeat the cheetah study's PEBBLE bit for bit? (reported only; nothing depends on it)
-    python results/stored-noise/repeat_check.py | tee results/stored-noise/analysis-probes/repeat.txt
+    keep results/stored-noise/analysis-probes/repeat.txt python results/stored-noise/repeat_check.py
 else
     echo "the probes: ${#probe_done_files[@]} of the 6 runs of r2n_pebble_reward_only and r2n_pebble_agent_as_reward are in; their table comes when all are"
 fi
