@@ -471,13 +471,18 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
-        starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", log.read(), re.M)]
+        text = log.read()
+    starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", text, re.M)]
+    # a start whose launcher was killed (a session cut off) wrote no exit line: it is counted, its seconds are not
+    unended = len(re.findall(r"^# started ", text, re.M)) - len(starts)
     events = glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*"))
     kept = events or not spec["results"]  # a study's run is what its event files hold
     kind = "done" if returncode == 0 and kept else "failed"
-    summary = (f"exit code {returncode}{'' if kept else ', no event file'}\n"
-               f"seconds {sum(starts):.0f} over {len(starts)} start(s)\n"
-               f"command {shlex.join(spec['command'])}\n")
+    summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"
+    summary += f"seconds {sum(starts):.0f} over {len(starts)} start(s)"
+    if unended > 0:
+        summary += f"; {unended} more start(s) ended without an exit line, their seconds unknown"
+    summary += f"\ncommand {shlex.join(spec['command'])}\n"
     command = tuple(spec["command"])
     summary += f"git commit {spec['commit']}\ndevice {device_of(command)}\nnumerics {numerics_of(command)}\n"
     if spec["results"] and kind == "done":  # keep the event files and the log; the `done` files come last

@@ -850,6 +850,22 @@ def test_a_slurm_task_records_each_run_when_it_ends_and_reports_earlier_starts(t
     assert seconds("short") < 4 <= seconds("long")
 
 
+def test_a_start_cut_off_without_an_exit_line_is_counted_in_the_done_file(tmp_path):
+    """A start whose launcher was killed (its log has `# started` and no exit line) still counts as a start in the
+    `done` file, which says its seconds are unknown; the starts that ended add up their seconds."""
+    log = tmp_path / "run.log"
+    log.write_text("# started 2026-11-26 06:40:49\nstep=10000\n"  # killed here: no exit line
+                   "# resumed from its state.pt\n# started 2026-11-26 08:09:59\nstep=20000\n")
+    spec = dict(run_id="run", command=["python", "pebble.py"], commit="abc", cwd=str(tmp_path), log=str(log),
+                results=None)
+    benchmark.finish_run(spec, 0, 553.0)
+    assert open(tmp_path / "run.done").read().splitlines()[:2] == [
+        "exit code 0", "seconds 553 over 1 start(s); 1 more start(s) ended without an exit line, their seconds unknown"]
+    log.write_text("# started 2026-11-26 08:09:59\nstep=20000\n")
+    benchmark.finish_run(spec, 0, 553.0)
+    assert open(tmp_path / "run.done").read().splitlines()[1] == "seconds 553 over 1 start(s)"
+
+
 @needs_submitit
 def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_path):
     """At the time limit, `RunGroup.checkpoint` stops the running runs (SIGUSR2) and requeues only them; a run that
