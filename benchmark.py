@@ -466,15 +466,16 @@ def numerics_of(command: tuple) -> str:
 
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker, whose `seconds` add up the
-    starts of a resumed run (each start's time is in its log). With a results folder, copy the run there; a run that
-    left no event file has nothing to keep and counts as failed."""
+    starts of a resumed run (each ended start's time is in its log; a start cut off without an exit line is counted,
+    its seconds unknown). With a results folder, copy the run there; a run that left no event file has nothing to
+    keep and counts as failed."""
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
         text = log.read()
     starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", text, re.M)]
     # a start whose launcher was killed (a session cut off) wrote no exit line: it is counted, its seconds are not
-    unended = len(re.findall(r"^# started ", text, re.M)) - len(starts)
+    unended = sum("\n# exit code " not in start for start in re.split(r"^# started ", text, flags=re.M)[1:])
     events = glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*"))
     kept = events or not spec["results"]  # a study's run is what its event files hold
     kind = "done" if returncode == 0 and kept else "failed"

@@ -852,15 +852,18 @@ def test_a_slurm_task_records_each_run_when_it_ends_and_reports_earlier_starts(t
 
 def test_a_start_cut_off_without_an_exit_line_is_counted_in_the_done_file(tmp_path):
     """A start whose launcher was killed (its log has `# started` and no exit line) still counts as a start in the
-    `done` file, which says its seconds are unknown; the starts that ended add up their seconds."""
+    `done` file, which says its seconds are unknown; the starts that ended, a SLURM requeue among them, add up their
+    seconds."""
     log = tmp_path / "run.log"
-    log.write_text("# started 2026-11-26 06:40:49\nstep=10000\n"  # killed here: no exit line
-                   "# resumed from its state.pt\n# started 2026-11-26 08:09:59\nstep=20000\n")
+    log.write_text("# started 2026-11-26 04:00:00\nstep=5000\n"
+                   "# exit code 1 after 40 s: stopped at the job's time limit, requeued to resume\n"
+                   f"{benchmark.RESUMED}# started 2026-11-26 06:40:49\nstep=10000\n"  # killed here: no exit line
+                   f"{benchmark.RESUMED}# started 2026-11-26 08:09:59\nstep=20000\n")
     spec = dict(run_id="run", command=["python", "pebble.py"], commit="abc", cwd=str(tmp_path), log=str(log),
                 results=None)
     benchmark.finish_run(spec, 0, 553.0)
     assert open(tmp_path / "run.done").read().splitlines()[:2] == [
-        "exit code 0", "seconds 553 over 1 start(s); 1 more start(s) ended without an exit line, their seconds unknown"]
+        "exit code 0", "seconds 593 over 2 start(s); 1 more start(s) ended without an exit line, their seconds unknown"]
     log.write_text("# started 2026-11-26 08:09:59\nstep=20000\n")
     benchmark.finish_run(spec, 0, 553.0)
     assert open(tmp_path / "run.done").read().splitlines()[1] == "seconds 553 over 1 start(s)"
@@ -895,7 +898,7 @@ def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_p
     group.processes[0][1].wait(timeout=30)
     benchmark.finish_run(specs[0], 0, 7.0)  # the requeued start ends: the seconds of both starts add up
     first = float(re.search(r"exit code 1 after (\d+) s", open(tmp_path / "running.log").read()).group(1))
-    assert f"seconds {first + 7:.0f} over 2 start(s)" in open(tmp_path / "running.done").read()
+    assert open(tmp_path / "running.done").read().splitlines()[1] == f"seconds {first + 7:.0f} over 2 start(s)"
 
 
 @needs_analysis
@@ -1019,7 +1022,8 @@ def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch
     log = open(f"logs-b/{run_id}.log").read()
     assert "# resumed from its state.pt" in log
     starts = [int(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s$", log, re.M)]
-    assert len(starts) == 2 and f"seconds {sum(starts)} over 2 start(s)" in open(f"resumed/{run_id}/done").read()
+    assert len(starts) == 2
+    assert open(f"resumed/{run_id}/done").read().splitlines()[1] == f"seconds {sum(starts)} over 2 start(s)"
     (reference,), (resumed,) = [analyze.load_runs([f"{folder}/{run_id}"]) for folder in ("uninterrupted", "resumed")]
     assert resumed.status == "used" and "resumed 1 time(s)" in resumed.note
     for tag, (steps, values) in reference.scalars.items():
@@ -1446,8 +1450,8 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
             writer.close()
             (folder / "done").write_text("exit code 0\n")
     # pebble_repeat seed 1 logs the cheetah study's PEBBLE seed 1 evaluations again
-    [original] = analyze.read_folder(sorted(glob.glob(os.path.join(
-        ROOT, "results", "cheetah-study", "pebble__cheetah-run__noise0.9__budget1000__seed1", "events.out.tfevents.*"))))
+    pebble_seed1 = os.path.join(ROOT, "results", "cheetah-study", "pebble__cheetah-run__noise0.9__budget1000__seed1")
+    [original] = analyze.read_folder(sorted(glob.glob(os.path.join(pebble_seed1, "events.out.tfevents.*"))))
     folder = study / "probes" / "pebble_repeat__cheetah-run__noise0.9__budget1000__seed1"
     writer = hparams_writer(str(folder), "cheetah-run", 0.9, 1000, "pebble_repeat", 1, total_timesteps=250_000)
     for step, value in zip(*original.scalars["eval/episodic_return"]):
@@ -1459,12 +1463,12 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert "the probes: pebble_repeat has 1 of 3 runs in" in result.stdout
     with open(study / "analysis-probes" / "primary.csv") as f:
-        assert {row["method"] for row in csv.DictReader(f)} == {"pebble", "r2n_pebble", "sac", "anf_sac", "pebble_repeat",
-                                                                *probes}
+        methods = {row["method"] for row in csv.DictReader(f)}
+    assert methods == {"pebble", "r2n_pebble", "sac", "anf_sac", "pebble_repeat", *probes}
     evaluations = len(original.eval_steps)
     assert (study / "analysis-probes" / "repeat.txt").read_text() == (
         f"pebble_repeat seed 1 against the cheetah study's pebble seed 1: {evaluations} of {evaluations} shared "
-        "scalars equal, up to step 250000\n")
+        "scalars equal, to the evaluation at step 250000\n")
     with open(study / "analysis" / "primary.csv") as f:
         assert {row["method"] for row in csv.DictReader(f)} == set(arms)
     gain = primary["r2n_pebble_stored_noise"].mean() - primary["pebble_stored_noise"].mean()
@@ -1478,7 +1482,8 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
 @needs_analysis
 def test_repeat_check_names_the_first_scalar_that_differs_and_a_run_under_way(tmp_path, capsys):
     """`repeat_check.py` compares the scalars a pebble_repeat run shares with the PEBBLE run of its seed: all equal,
-    or the first that differs (by step, then tag); the SPS chart, wall time, is left out; a run under way says so."""
+    or the first that differs (by step, then tag: an earlier loss before a later return); the SPS chart, wall time,
+    is left out; a run under way says so."""
     repeat_check = stored_noise_module("repeat_check")
     for method, folder, seeds in (("pebble", "cheetah", (1, 2)), ("pebble_repeat", "probes", (1, 2))):
         for seed in seeds:
@@ -1486,17 +1491,17 @@ def test_repeat_check_names_the_first_scalar_that_differs_and_a_run_under_way(tm
                                     total_timesteps=30_000)
             last = 30_000 if method == "pebble" or seed == 1 else 20_000
             for step in range(10_000, last + 1, 10_000):
-                differs = method == "pebble_repeat" and seed == 1 and step == 20_000
-                writer.add_scalar("eval/episodic_return", step / 100 + (0.5 if differs else 0.0), step)
-                writer.add_scalar("losses/qf_loss", 0.25 + (0.5 if differs else 0.0), step)
+                changed = method == "pebble_repeat" and seed == 1  # eval at step 20 000, the loss at 10 000 and 20 000
+                writer.add_scalar("eval/episodic_return", step / 100 + 0.5 * (changed and step == 20_000), step)
+                writer.add_scalar("losses/qf_loss", 0.25 + 0.5 * (changed and step <= 20_000), step)
                 writer.add_scalar("charts/SPS", 80 if method == "pebble" else 90, step)
             writer.close()
     assert repeat_check.main([str(tmp_path / "probes")], cheetah=str(tmp_path / "cheetah")) == 0
     assert capsys.readouterr().out.splitlines() == [
-        "pebble_repeat seed 1 against the cheetah study's pebble seed 1: 4 of 6 shared scalars equal, up to step "
-        "30000; the first that differs: eval/episodic_return at step 20000",
-        "pebble_repeat seed 2 against the cheetah study's pebble seed 2: 4 of 4 shared scalars equal, up to step 20000 "
-        "of 30000 (under way)",
+        "pebble_repeat seed 1 against the cheetah study's pebble seed 1: 3 of 6 shared scalars equal, to the "
+        "evaluation at step 30000; the first that differs: losses/qf_loss at step 10000",
+        "pebble_repeat seed 2 against the cheetah study's pebble seed 2: 4 of 4 shared scalars equal, to the "
+        "evaluation at step 20000 of 30000 (under way)",
     ]
 
 
@@ -1519,8 +1524,9 @@ def test_probe_table_is_committed_once_the_issue_probes_are_in():
     landed = len(glob.glob(os.path.join(probes, "r2n_pebble_reward_only__*", "done"))
                  + glob.glob(os.path.join(probes, "r2n_pebble_agent_as_reward__*", "done")))
     assert landed <= 6
-    assert os.path.exists(PROBES_TABLE) == (landed == 6), \
-        f"{landed} of 6 probes are in: run `bash results/stored-noise/analyze.sh` once all are, and commit analysis-probes/"
+    assert os.path.exists(PROBES_TABLE) == (landed == 6), (
+        f"{landed} of 6 probes are in: run `bash results/stored-noise/analyze.sh` once all are, and commit "
+        "analysis-probes/")
     if landed == 6:
         repeats = sorted(int(path.split("__seed")[1].split(os.sep)[0])
                          for path in glob.glob(os.path.join(probes, "pebble_repeat__*", "done")))
@@ -1560,6 +1566,31 @@ def test_stored_noise_analysis_keeps_the_old_report_when_a_step_fails(tmp_path):
     assert result.returncode == 1
     assert (study / "analysis" / "interaction.txt").read_text() == "the old report\n"
     assert not (study / "analysis" / "power-achieved.txt").exists()
+
+
+def test_stored_noise_probe_table_waits_for_the_issue_probes(tmp_path):
+    """With 5 of the issue's 6 probe runs in, and a pebble_repeat run beside them, `analyze.sh` writes the primary
+    analysis and says how many probes are in, but no probes' table."""
+    study = tmp_path / "results" / "stored-noise"
+    probes = [("r2n_pebble_reward_only", 1), ("r2n_pebble_reward_only", 2), ("r2n_pebble_reward_only", 3),
+              ("r2n_pebble_agent_as_reward", 1), ("r2n_pebble_agent_as_reward", 2), ("pebble_repeat", 1)]
+    runs = [f"runs/run{seed}" for seed in range(22)] + [
+        f"probes/{method}__cheetah-run__noise0.9__budget1000__seed{seed}" for method, seed in probes]
+    for run in runs:
+        (study / run).mkdir(parents=True)
+        (study / run / "done").write_text("exit code 0\n")
+    (tmp_path / "analyze.py").write_text("")  # the tables steps succeed and write nothing
+    for name in ("interaction.py", "power.py"):
+        (study / name).write_text(f"print('{name} ran')\n")
+    (study / "analysis").mkdir()
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    result = subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
+                            capture_output=True, text=True, env=env)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["interaction.py ran", "power.py ran", "the probes: 5 of the 6 runs of "
+                                          "r2n_pebble_reward_only and r2n_pebble_agent_as_reward are in; their table "
+                                          "comes when all are"]
+    assert not (study / "analysis-probes").exists()
 
 
 @pytest.mark.parametrize("log_dirs, output_dir, baseline, baseline_for", [

@@ -5,9 +5,8 @@
 
 Each `pebble_repeat` run found is set beside the cheetah study's committed `pebble` run of the same seed. Every scalar
 the two share (same tag, same step) is compared for equality. The SPS chart is left out: it is wall time. A run under
-way is compared up to its last point, and the line says so. This is a report: it exits 0 whatever it finds.
+way is compared to its last point, and the line says so. This is a report: it exits 0 whatever it finds.
 """
-import itertools
 import os
 import sys
 
@@ -22,13 +21,9 @@ TIMING_TAGS = frozenset({"charts/SPS"})
 
 
 def runs_of(folders, exp_name: str) -> dict:
-    """The runs of `exp_name` under `folders`, by seed (a resumed run's event files read as one)."""
-    found = {}
-    for _, paths in itertools.groupby(analyze.find_event_files(folders), key=os.path.dirname):
-        for run in analyze.read_folder(list(paths)):
-            if run.status == "used" and run.hparams.get("exp_name") == exp_name:
-                found[run.hparams["seed"]] = run
-    return found
+    """The runs of `exp_name` under `folders`, by seed, finished or not (a resumed run's event files read as one)."""
+    runs = analyze.load_runs(folders, include_unfinished=True)
+    return {run.hparams["seed"]: run for run in runs if run.status == "used" and run.hparams["exp_name"] == exp_name}
 
 
 def compare(repeat, original) -> str:
@@ -39,15 +34,18 @@ def compare(repeat, original) -> str:
         original_steps, original_values = original.scalars[tag]
         _, here, there = np.intersect1d(steps, original_steps, return_indices=True)
         shared += len(here)
-        differ = values[here] != original_values[there]
+        a, b = values[here], original_values[there]
+        differ = (a != b) & ~(np.isnan(a) & np.isnan(b))  # the same NaN in both is a repeat too
         unequal += [(int(steps[i]), tag) for i in here[differ]]
-    last = int(repeat.eval_steps[-1]) if len(repeat.eval_steps) else 0
-    total = repeat.hparams.get("total_timesteps")
-    extent = f"up to step {last}" + ("" if last >= total else f" of {total} (under way)")
+    last, total = int(repeat.eval_steps[-1]), repeat.hparams.get("total_timesteps")
+    extent = f"to the evaluation at step {last}"
+    if isinstance(total, int) and last < total:
+        extent += f" of {total} (under way)"
     if not unequal:
         return f"{shared} of {shared} shared scalars equal, {extent}"
     step, tag = min(unequal)
-    return f"{shared - len(unequal)} of {shared} shared scalars equal, {extent}; the first that differs: {tag} at step {step}"
+    equal = shared - len(unequal)
+    return f"{equal} of {shared} shared scalars equal, {extent}; the first that differs: {tag} at step {step}"
 
 
 def main(folders, cheetah: str = CHEETAH) -> int:
@@ -56,8 +54,11 @@ def main(folders, cheetah: str = CHEETAH) -> int:
     if not repeats:
         print(f"no pebble_repeat run under {', '.join(folders)}")
     for seed in sorted(repeats):
-        print(f"pebble_repeat seed {seed} against the cheetah study's pebble seed {seed}: "
-              + compare(repeats[seed], originals[seed]))
+        line = f"pebble_repeat seed {seed} against the cheetah study's pebble seed {seed}: "
+        if seed in originals:
+            print(line + compare(repeats[seed], originals[seed]))
+        else:
+            print(line + "no such pebble run")
     return 0
 
 
