@@ -1424,7 +1424,7 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
     pebble_repeat run that logs PEBBLE's evaluations again is reported equal to it."""
     study = tmp_path / "results" / "stored-noise"
     study.mkdir(parents=True)
-    for name in ("analyze.sh", "interaction.py", "power.py", "repeat_check.py"):
+    for name in ("analyze.sh", "interaction.py", "power.py", "repeat_check.py", "diagnostics.py"):
         shutil.copy(os.path.join(ROOT, "results", "stored-noise", name), study / name)
     os.symlink(os.path.join(ROOT, "results", "cheetah-study"), tmp_path / "results" / "cheetah-study")
     os.symlink(os.path.join(ROOT, "analyze.py"), tmp_path / "analyze.py")
@@ -1469,6 +1469,12 @@ def test_stored_noise_analysis_runs_end_to_end_on_22_synthetic_runs(tmp_path):
     assert (study / "analysis-probes" / "repeat.txt").read_text() == (
         f"pebble_repeat seed 1 against the cheetah study's pebble seed 1: {evaluations} of {evaluations} shared "
         "scalars equal, to the evaluation at step 250000\n")
+    diagnostics = (study / "analysis-probes" / "diagnostics.md").read_text().splitlines()
+    mean, se = analyze.mean_se(probes["r2n_pebble_reward_only"])
+    assert f"| `r2n_pebble_reward_only` | redrawn | dense | sparse | 3 | {mean:.1f} ± {se:.1f} | - |" in diagnostics[5]
+    assert [line.split(" | ")[0] for line in diagnostics[2:9]] == [f"| `{method}`" for method in (
+        "pebble", "r2n_pebble", "pebble_repeat", "r2n_pebble_reward_only", "r2n_pebble_agent_as_reward",
+        "pebble_stored_noise", "r2n_pebble_stored_noise")]
     with open(study / "analysis" / "primary.csv") as f:
         assert {row["method"] for row in csv.DictReader(f)} == set(arms)
     gain = primary["r2n_pebble_stored_noise"].mean() - primary["pebble_stored_noise"].mean()
@@ -1519,7 +1525,8 @@ PROBES_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis-probes", 
 
 def test_probe_table_is_committed_once_the_issue_probes_are_in():
     """The probes' table (`analyze.sh`) is committed once the 6 runs of the issue's two probe arms are, and not
-    before; its pebble_repeat report then names every committed pebble_repeat run, and only those."""
+    before; its pebble_repeat report then names every committed pebble_repeat run, and only those, and its
+    diagnostics table is what `diagnostics.py` makes of the committed runs."""
     probes = os.path.join(ROOT, "results", "stored-noise", "probes")
     landed = len(glob.glob(os.path.join(probes, "r2n_pebble_reward_only__*", "done"))
                  + glob.glob(os.path.join(probes, "r2n_pebble_agent_as_reward__*", "done")))
@@ -1533,6 +1540,10 @@ def test_probe_table_is_committed_once_the_issue_probes_are_in():
         with open(os.path.join(os.path.dirname(PROBES_TABLE), "repeat.txt")) as f:
             reported = [int(line.split()[2]) for line in f if line.startswith("pebble_repeat seed ")]
         assert reported == repeats, "run `bash results/stored-noise/analyze.sh` again and commit analysis-probes/"
+        script = os.path.join(ROOT, "results", "stored-noise", "diagnostics.py")  # its table, from the committed runs
+        regenerated = subprocess.run([sys.executable, script], capture_output=True, text=True, check=True).stdout
+        with open(os.path.join(os.path.dirname(PROBES_TABLE), "diagnostics.md")) as f:
+            assert f.read() == regenerated
 
 
 def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):

@@ -3,7 +3,8 @@
 # (analysis/interaction.txt, analysis/power-achieved.txt): the commands of PROTOCOL.md ("Analysis commands"), in its
 # order. It refuses until all 22 primary runs are in (the protocol reads no test before). The probes' descriptive
 # table (analysis-probes/) comes once the 6 runs of the issue's two probe arms are in, with pebble_repeat's runs that
-# are in and, in analysis-probes/repeat.txt, whether they repeat the cheetah study's PEBBLE (PROTOCOL.md, "Addition").
+# are in; repeat.txt says whether they repeat the cheetah study's PEBBLE (PROTOCOL.md, "Addition"), and
+# diagnostics.md sets the PbRL arms of both environments side by side.
 # Run from the repository root: bash results/stored-noise/analyze.sh
 set -euo pipefail
 shopt -s nullglob  # a pattern that matches nothing counts 0 files
@@ -32,6 +33,7 @@ if [ "${#probe_done_files[@]}" -eq 6 ]; then
         --output-dir results/stored-noise/analysis-probes --primary-last 3
     echo "the probes: pebble_repeat has ${#repeat_done_files[@]} of 3 runs in"
     keep results/stored-noise/analysis-probes/repeat.txt python results/stored-noise/repeat_check.py
+    keep results/stored-noise/analysis-probes/diagnostics.md python results/stored-noise/diagnostics.py
 else
     echo "the probes: ${#probe_done_files[@]} of the 6 runs of r2n_pebble_reward_only and" \
         "r2n_pebble_agent_as_reward are in; their table comes when all are"
