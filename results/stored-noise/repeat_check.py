@@ -52,7 +52,7 @@ def main(folders, cheetah: str = CHEETAH) -> int:
     repeats = runs_of(folders, "pebble_repeat")
     originals = runs_of([cheetah], "pebble")
     if not repeats:
-        print(f"no pebble_repeat run under {', '.join(folders)}")
+        print(f"no pebble_repeat run under {', '.join(os.path.relpath(folder) for folder in folders)}")
     for seed in sorted(repeats):
         line = f"pebble_repeat seed {seed} against the cheetah study's pebble seed {seed}: "
         if seed in originals:
