@@ -1560,20 +1560,28 @@ def test_stored_noise_analysis_refuses_until_every_primary_run_is_in(tmp_path):
     assert not (tmp_path / "results" / "stored-noise" / "analysis").exists()
 
 
+def run_stored_noise_analysis(tmp_path, runs):
+    """`analyze.sh` run in `tmp_path` after a `done` file is written in each of `runs` (folders under
+    results/stored-noise); `analyze.py` is an empty stub, so its tables steps succeed and write nothing."""
+    study = tmp_path / "results" / "stored-noise"
+    for run in runs:
+        (study / run).mkdir(parents=True)
+        (study / run / "done").write_text("exit code 0\n")
+    (tmp_path / "analyze.py").write_text("")
+    (study / "analysis").mkdir(exist_ok=True)
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    return subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
+                          capture_output=True, text=True, env=env)
+
+
 def test_stored_noise_analysis_keeps_the_old_report_when_a_step_fails(tmp_path):
     """A step of `analyze.sh` that fails after printing leaves the report it would write as it was, and the script
     stops there: no half-written interaction.txt."""
     study = tmp_path / "results" / "stored-noise"
-    for seed in range(22):
-        (study / "runs" / f"run{seed}").mkdir(parents=True)
-        (study / "runs" / f"run{seed}" / "done").write_text("exit code 0\n")
-    (tmp_path / "analyze.py").write_text("")  # the tables step succeeds and writes nothing
+    (study / "analysis").mkdir(parents=True)
     (study / "interaction.py").write_text("print('H2: D = half of it')\nraise SystemExit(1)\n")
-    (study / "analysis").mkdir()
     (study / "analysis" / "interaction.txt").write_text("the old report\n")
-    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
-    result = subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
-                            capture_output=True, text=True, env=env)
+    result = run_stored_noise_analysis(tmp_path, [f"runs/run{seed}" for seed in range(22)])
     assert result.returncode == 1
     assert (study / "analysis" / "interaction.txt").read_text() == "the old report\n"
     assert not (study / "analysis" / "power-achieved.txt").exists()
@@ -1583,20 +1591,13 @@ def test_stored_noise_probe_table_waits_for_the_issue_probes(tmp_path):
     """With 5 of the issue's 6 probe runs in, and a pebble_repeat run beside them, `analyze.sh` writes the primary
     analysis and says how many probes are in, but no probes' table."""
     study = tmp_path / "results" / "stored-noise"
-    probes = [("r2n_pebble_reward_only", 1), ("r2n_pebble_reward_only", 2), ("r2n_pebble_reward_only", 3),
-              ("r2n_pebble_agent_as_reward", 1), ("r2n_pebble_agent_as_reward", 2), ("pebble_repeat", 1)]
-    runs = [f"runs/run{seed}" for seed in range(22)] + [
-        f"probes/{method}__cheetah-run__noise0.9__budget1000__seed{seed}" for method, seed in probes]
-    for run in runs:
-        (study / run).mkdir(parents=True)
-        (study / run / "done").write_text("exit code 0\n")
-    (tmp_path / "analyze.py").write_text("")  # the tables steps succeed and write nothing
+    study.mkdir(parents=True)
     for name in ("interaction.py", "power.py"):
         (study / name).write_text(f"print('{name} ran')\n")
-    (study / "analysis").mkdir()
-    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
-    result = subprocess.run(["bash", os.path.join(ROOT, "results", "stored-noise", "analyze.sh")], cwd=tmp_path,
-                            capture_output=True, text=True, env=env)
+    probes = [("r2n_pebble_reward_only", 1), ("r2n_pebble_reward_only", 2), ("r2n_pebble_reward_only", 3),
+              ("r2n_pebble_agent_as_reward", 1), ("r2n_pebble_agent_as_reward", 2), ("pebble_repeat", 1)]
+    result = run_stored_noise_analysis(tmp_path, [f"runs/run{seed}" for seed in range(22)] + [
+        f"probes/{method}__cheetah-run__noise0.9__budget1000__seed{seed}" for method, seed in probes])
     assert result.returncode == 0, result.stderr
     assert result.stdout.splitlines() == ["interaction.py ran", "power.py ran", "the probes: 5 of the 6 runs of "
                                           "r2n_pebble_reward_only and r2n_pebble_agent_as_reward are in; their table "

@@ -71,17 +71,15 @@ def main() -> int:
     header = ["arm", "noise", "agent", "reward model", "seeds"] + [name for name, _, _ in COLUMNS]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
-    chances = {}
     for method, environment, folder, agent, reward in ARMS:
         runs = [run for run in loaded.get(folder, []) if run.status == "used" and run.hparams["exp_name"] == method]
         if not runs:
             continue
-        for net in ("actor", "qf1", "reward0"):
-            chances[net] = chances.get(net) or chance(runs, net)
         cells = [f"`{method}`", environment, agent, reward, str(len(runs))]
         print("| " + " | ".join(cells + [cell(runs, tags, digits) for _, tags, digits in COLUMNS]) + " |")
     print()
-    actor, critics, members = (chances.get(net) or "-" for net in ("actor", "qf1", "reward0"))
+    every_run = [run for runs in loaded.values() for run in runs if run.status == "used"]
+    actor, critics, members = (chance(every_run, net) or "-" for net in ("actor", "qf1", "reward0"))
     print(f"Chance of `relevant_weight_frac`: actor {actor}, critics {critics}, reward members {members}; it is also "
           "the chance of the active-connection share.")
     return 0
