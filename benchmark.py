@@ -127,6 +127,14 @@ STORED_NOISE = tuple(
 REDRAWN_PROBES = (Preset((("cheetah-run", 0.9, 1000),),
                          ("r2n_pebble_reward_only", "r2n_pebble_agent_as_reward", "pebble_repeat"), (1, 2, 3),
                          CHEETAH_FLAGS, ("--feedback-freq", "1200")),)
+# Issue 41's table in the stored ENE (results/stored-table/PROTOCOL.md): its pilot, one seed of each arm per task and a
+# second PEBBLE seed for the spread, at the stored-noise study's scale; every arm names its variant (`*_stored_noise`).
+STORED_TABLE_SETTINGS = (("cartpole-swingup", 0.9, 400), ("walker-walk", 0.9, 4000), ("quadruped-walk", 0.7, 4000))
+STORED_TABLE_PILOT = tuple(
+    Preset(STORED_TABLE_SETTINGS, tuple(f"{m}_stored_noise" for m in methods), seeds, CHEETAH_FLAGS,
+           ("--feedback-freq", "1200"))
+    for methods, seeds in ((("pebble", "r2n_pebble", "sac", "anf_sac"), (901,)), (("pebble",), (902,)))
+)
 # Issue 21's imitating noise (results/imitate/PROTOCOL.md, exploratory): the cpu-study's main setting with noise features
 # drawn from the histograms of a noise-free SAC policy's observations (made by results/imitate/run.sh first).
 IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY_FLAGS + (
@@ -135,7 +143,7 @@ IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
 RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study",
            "imitate": "results/imitate", "stored-noise": "results/stored-noise/runs",
-           "redrawn-probes": "results/stored-noise/probes"}
+           "redrawn-probes": "results/stored-noise/probes", "stored-table-pilot": "results/stored-table/pilot"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -173,13 +181,16 @@ PRESETS = {
     "stored-noise": STORED_NOISE,
     # after it, redrawn noise: R2N's reward half alone, the agent's RigL at the reward's settings, PEBBLE again; 3 x 3
     "redrawn-probes": REDRAWN_PROBES,
+    # the main table's pilot in the stored ENE: 3 tasks x (pebble, r2n_pebble, sac, anf_sac, seed 901; pebble, seed 902)
+    "stored-table-pilot": STORED_TABLE_PILOT,
 }
 
 
 @dataclass
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
-                             "early-stop", "cheetah-study", "imitate", "stored-noise", "redrawn-probes"]] = None
+                             "early-stop", "cheetah-study", "imitate", "stored-noise", "redrawn-probes",
+                             "stored-table-pilot"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
@@ -187,7 +198,8 @@ class Args:
     confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`); `imitate`,
     imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms);
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
-    its two exploratory arms in the default environment (`results/stored-noise/probes`)"""
+    its two exploratory arms in the default environment (`results/stored-noise/probes`); `stored-table-pilot`, the
+    pilot of the main table in the stored ENE (`results/stored-table/pilot`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,
     `pebble_stored_noise`, ...); replaces the preset's"""
