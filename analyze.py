@@ -93,12 +93,16 @@ RUN_SPECIFIC_KEYS = frozenset({
     "run_name", "checkpoint_freq", "keep_state", "state_minutes", "cuda_graph", "parallel_eval",
 })
 # Flags the scripts gained after runs were recorded, with the value those runs had in effect (only the simulated teacher
-# existed before `--teacher`), so that old and new runs of one configuration stay one group.
-ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None, "compile": False, "tf32": False}
-# Flags that change a run's numerics (issue 19): runs that differ in one are never averaged together or compared.
+# existed before `--teacher`, and the noise was redrawn before `--noise-resample`), so that old and new runs of one
+# configuration stay one group.
+ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None, "compile": False, "tf32": False,
+                       "noise_resample": True}
+# Flags that change a run's numerics (issue 19), and the flag that makes the noise redrawn or stored (two different
+# environments): runs that differ in one are never averaged together or compared.
 NUMERICS_KEYS = ("compile", "tf32")
+VARIANT_KEYS = ("noise_resample",)
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
-COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type", "noise_resample")
+COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type")
 EVAL_TAG = "eval/episodic_return"
 SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
 FEATURE_TAG = re.compile(r"^features/(?P<net>[^/]+)/relevant_weight_frac$")  # every script; its chance: `.../chance`
@@ -301,6 +305,11 @@ def load_runs(log_dirs, include_unfinished: bool = False) -> list:
     return runs
 
 
+def flag_of(run: Run, key: str):
+    """A flag's value in a run, or the value it had in effect before the scripts gained it."""
+    return run.hparams.get(key, ADDED_FLAG_DEFAULTS.get(key, False))
+
+
 def config_of(run: Run) -> tuple:
     """The hyperparameters that must match within a group (a flag added after a run was recorded: its default)."""
     hparams = {**ADDED_FLAG_DEFAULTS, **run.hparams}
@@ -334,7 +343,8 @@ def make_groups(runs) -> list:
                 keys = [k for k in sorted(set(config) | set(chosen_dict)) if config.get(k) != chosen_dict.get(k)]
                 diffs = [f"{k}={config.get(k, '<absent>')} (group: {chosen_dict.get(k, '<absent>')})" for k in keys]
                 numerics = " (numerics flags: never averaged together)" if set(keys) & set(NUMERICS_KEYS) else ""
-                r.skip("mismatched settings: " + ", ".join(diffs) + numerics)
+                variant = " (noise redrawn and stored: never averaged together)" if set(keys) & set(VARIANT_KEYS) else ""
+                r.skip("mismatched settings: " + ", ".join(diffs) + numerics + variant)
         members = [r for r in members if r.status == "used"]
         by_seed = defaultdict(list)
         for r in members:
@@ -472,14 +482,18 @@ def table_rows(groups, args: Args) -> list:
             row[f"{metric}_p"] = row[f"{metric}_perm_p"] = row[f"{metric}_diff"] = float("nan")
             row[f"{metric}_ci"], row[f"{metric}_exact"] = (float("nan"), float("nan")), True
         base = by_key.get((task, noise, budget, base_name))
-        numerics = base and [f"{k}={g.runs[0].hparams.get(k, False)} vs {base.runs[0].hparams.get(k, False)}"
-                             for k in NUMERICS_KEYS if g.runs[0].hparams.get(k, False) != base.runs[0].hparams.get(k, False)]
+        numerics, variant = (base and [f"{k}={flag_of(g.runs[0], k)} vs {flag_of(base.runs[0], k)}"
+                                        for k in keys if flag_of(g.runs[0], k) != flag_of(base.runs[0], k)]
+                             for keys in (NUMERICS_KEYS, VARIANT_KEYS))
         if method != base_name:
             if base is None:
                 row["notes"].append(f"no baseline {base_name} for this task, noise and budget")
             elif numerics:
                 row["notes"].append(f"not compared with {base_name}: the numerics flags differ ({', '.join(numerics)}); "
                                     "runs with different numerics are never compared")
+            elif variant:
+                row["notes"].append(f"not compared with {base_name}: the noise is redrawn in one and stored in the other "
+                                    f"({', '.join(variant)}); runs of different environments are never compared")
             else:
                 row["baseline"] = base_name
                 for metric in METRICS:

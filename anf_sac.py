@@ -12,11 +12,13 @@ critic reset). The loop, one iteration per env step:
 2. then one SAC update per step on the true reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-Two uses: the upper bound ("SAC with the true reward") for PbRL curves at equal `--noise`; with
-`--noise 0`, a noise-free policy whose deterministic rollouts give `--noise-type imitate` its
-histograms (`make_histograms.py`). Choices where the paper is silent, from `pebble.py`: replay
-minibatches' noise is redrawn (`--noise-resample`, like ANF). Critics bootstrap on `terminated`
-only. `make_critic` stays a function (PEBBLE resets critics) for byte-identical shared code.
+Two uses: the upper bound ("SAC with the true reward") for PbRL curves at equal `--noise`, with the
+noise redrawn (with it stored, SAC falls below PEBBLE at the studies' scale); with `--noise 0`, a
+noise-free policy whose deterministic rollouts give `--noise-type imitate` its histograms
+(`make_histograms.py`). Choices where the paper is silent, from `pebble.py`: a stored observation
+keeps its noise (`--noise-resample` redraws it in replay minibatches, like ANF's code). Critics
+bootstrap on `terminated` only. `make_critic` stays a function (PEBBLE resets critics) for
+byte-identical shared code.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -63,8 +65,9 @@ class Args:
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
-    noise_resample: bool = True
-    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
+    noise_resample: bool = False
+    """redraw the noise columns of stored observations each time they are read (ANF's code);
+    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000

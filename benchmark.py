@@ -90,31 +90,39 @@ class Preset(NamedTuple):
     feedback_flags: tuple = ()  # appended to the commands of the PbRL methods (feedback schedule)
 
 
+# The studies that ran with the noise redrawn name it, so that their commands stay theirs whatever the default.
+REDRAWN = ("--noise-resample",)
 # The CPU study (results/cpu-study/README.md): the paper's claim at a scale that runs in <= 20 minutes on one CPU core.
 # Fixed before any of its runs was looked at; its README says why each value.
 CPU_STUDY_FLAGS = ("--total-timesteps", "80000", "--hidden-dim", "256", "--batch-size", "128")
 CPU_STUDY_FEEDBACK = ("--feedback-freq", "2000", "--queries-per-round", "25")  # 16 rounds: 400 labels by step 40 000
 CPU_STUDY_MAIN, CPU_STUDY_HARDER = (("cartpole-swingup", 0.9, 400),), (("cartpole-swingup", 0.95, 400),)
-CPU_STUDY_ARMS = ("pebble_stored_noise", "r2n_pebble_stored_noise", "pebble_no_early_stop", "r2n_pebble_no_early_stop")
 CPU_STUDY = tuple(
-    Preset(settings, methods, seeds, CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK)
-    for settings, methods, seeds in (
-        (CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), tuple(range(1, 9))),
-        (CPU_STUDY_HARDER, ("pebble", "r2n_pebble"), tuple(range(1, 6))),
-        (CPU_STUDY_MAIN + CPU_STUDY_HARDER, ("sac", "anf_sac"), (1, 2, 3)),
-        (CPU_STUDY_MAIN, CPU_STUDY_ARMS, (1, 2, 3)),
+    Preset(settings, methods, seeds, variant + CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK)
+    for settings, methods, seeds, variant in (
+        (CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), tuple(range(1, 9)), REDRAWN),
+        (CPU_STUDY_HARDER, ("pebble", "r2n_pebble"), tuple(range(1, 6)), REDRAWN),
+        (CPU_STUDY_MAIN + CPU_STUDY_HARDER, ("sac", "anf_sac"), (1, 2, 3), REDRAWN),
+        (CPU_STUDY_MAIN, ("pebble_stored_noise", "r2n_pebble_stored_noise"), (1, 2, 3), ()),  # the variant names it
+        (CPU_STUDY_MAIN, ("pebble_no_early_stop", "r2n_pebble_no_early_stop"), (1, 2, 3), REDRAWN),
     )
 )
 # Issue 21's confirmation of the cpu-study's one lead (R2N beats PEBBLE when the reward's early stop is off): the
 # cpu-study's main setting with 8 new seeds per arm (results/early-stop/PROTOCOL.md, fixed before its first run).
 EARLY_STOP = (Preset(CPU_STUDY_MAIN, ("pebble_no_early_stop", "r2n_pebble_no_early_stop"), tuple(range(9, 17)),
-                     CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK),)
+                     REDRAWN + CPU_STUDY_FLAGS, CPU_STUDY_FEEDBACK),)
 # Issue 21's powered study (results/cheetah-study/PROTOCOL.md, fixed after its pilot): cheetah-run 0.9/1000 at a CPU
 # scale, 8 seeds per PbRL arm (80% power for half the paper's gain), 3 per oracle.
 CHEETAH_FLAGS = ("--total-timesteps", "250000", "--hidden-dim", "256", "--batch-size", "128", "--eval-freq", "10000")
 CHEETAH_STUDY = tuple(
-    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"))
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, REDRAWN + CHEETAH_FLAGS, ("--feedback-freq", "1200"))
     for methods, seeds in ((("pebble", "r2n_pebble"), tuple(range(1, 9))), (("sac", "anf_sac"), (1, 2, 3)))
+)
+# Its pilot (protocol results/cheetah-study/PILOT.md, runs results/cheetah-pilot): SAC seed 901, PEBBLE seeds 901
+# and 902, at the study's scale.
+CHEETAH_PILOT = tuple(
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, REDRAWN + CHEETAH_FLAGS, ("--feedback-freq", "1200"))
+    for methods, seeds in ((("sac",), (901,)), (("pebble",), (901, 902)))
 )
 # Issue 29's study of the stored noise (results/stored-noise/PROTOCOL.md, fixed before its first run): the cheetah
 # study's design with every arm storing the noise it saw (`--no-noise-resample`), as B-Pref's buffers would.
@@ -126,7 +134,7 @@ STORED_NOISE = tuple(
 # Its exploratory probes, run after it, in the cheetah study's environment (redrawn noise), 3 seeds each, no test.
 REDRAWN_PROBES = (Preset((("cheetah-run", 0.9, 1000),),
                          ("r2n_pebble_reward_only", "r2n_pebble_agent_as_reward", "pebble_repeat"), (1, 2, 3),
-                         CHEETAH_FLAGS, ("--feedback-freq", "1200")),)
+                         REDRAWN + CHEETAH_FLAGS, ("--feedback-freq", "1200")),)
 # Issue 41's table in the stored ENE (results/stored-table/PROTOCOL.md): its pilot, one seed of each arm per task and a
 # second PEBBLE seed for the spread, at the stored-noise study's scale; every arm names its variant (`*_stored_noise`).
 STORED_TABLE_SETTINGS = (("cartpole-swingup", 0.9, 400), ("walker-walk", 0.9, 4000), ("quadruped-walk", 0.7, 4000))
@@ -137,13 +145,14 @@ STORED_TABLE_PILOT = tuple(
 )
 # Issue 21's imitating noise (results/imitate/PROTOCOL.md, exploratory): the cpu-study's main setting with noise features
 # drawn from the histograms of a noise-free SAC policy's observations (made by results/imitate/run.sh first).
-IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), CPU_STUDY_FLAGS + (
+IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), REDRAWN + CPU_STUDY_FLAGS + (
     "--noise-type", "imitate", "--noise-histograms", os.path.join(ROOT, "results/imitate/cartpole-swingup_histograms.npz"),
 ), CPU_STUDY_FEEDBACK),)  # an absolute path: each run works in its own scratch folder
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
-RESULTS = {"cpu-study": "results/cpu-study", "early-stop": "results/early-stop", "cheetah-study": "results/cheetah-study",
-           "imitate": "results/imitate", "stored-noise": "results/stored-noise/runs",
-           "redrawn-probes": "results/stored-noise/probes", "stored-table-pilot": "results/stored-table/pilot"}
+RESULTS = {"cpu-study": "results/cpu-study", "cheetah-pilot": "results/cheetah-pilot", "early-stop": "results/early-stop",
+           "cheetah-study": "results/cheetah-study", "imitate": "results/imitate",
+           "stored-noise": "results/stored-noise/runs", "redrawn-probes": "results/stored-noise/probes",
+           "stored-table-pilot": "results/stored-table/pilot"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -173,6 +182,8 @@ PRESETS = {
     "cpu-study": CPU_STUDY,
     # the confirmation of the early-stop lead: cartpole-swingup 0.9/400 at the cpu-study's scale, reward early stop off
     "early-stop": EARLY_STOP,
+    # its pilot: SAC seed 901 and PEBBLE seeds 901 and 902 at the study's scale
+    "cheetah-pilot": CHEETAH_PILOT,
     # the powered study: cheetah-run 0.9/1000, 250k steps, 256-wide; 8 + 8 PbRL runs and 3 + 3 oracle runs
     "cheetah-study": CHEETAH_STUDY,
     # imitating noise, exploratory: cartpole-swingup 0.9/400 at the cpu-study's scale, 3 + 3 runs
@@ -189,16 +200,17 @@ PRESETS = {
 @dataclass
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
-                             "early-stop", "cheetah-study", "imitate", "stored-noise", "redrawn-probes",
-                             "stored-table-pilot"]] = None
+                             "early-stop", "cheetah-pilot", "cheetah-study", "imitate", "stored-noise",
+                             "redrawn-probes", "stored-table-pilot"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
     `cpu-study`, the CPU-scale study (its results go to `results/cpu-study`); `early-stop`, its lead's
-    confirmation (`results/early-stop`); `cheetah-study`, the powered study (`results/cheetah-study`); `imitate`,
+    confirmation (`results/early-stop`); `cheetah-pilot`, its pilot (`results/cheetah-pilot`); `cheetah-study`,
+    the powered study (`results/cheetah-study`); `imitate`,
     imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms);
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
-    its two exploratory arms in the default environment (`results/stored-noise/probes`); `stored-table-pilot`, the
+    its three exploratory arms with the noise redrawn (`results/stored-noise/probes`); `stored-table-pilot`, the
     pilot of the main table in the stored ENE (`results/stored-table/pilot`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,

@@ -15,12 +15,13 @@ AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per en
    buffer. One SAC update per step on the learned reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query
-scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
-them after round one). Each asked query counts against the budget; labels obtained are logged apart.
-Early stopping's accuracy counts only strict (non-equal) labels. The stored reward of a new
-transition comes from the current reward ensemble; the next relabel overwrites it.
+Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
+B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
+(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
+teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
+query counts against the budget; labels obtained are logged apart. Early stopping's accuracy counts
+only strict (non-equal) labels. The stored reward of a new transition comes from the current reward
+ensemble; the next relabel overwrites it.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -70,8 +71,9 @@ class Args:
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
-    noise_resample: bool = True
-    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
+    noise_resample: bool = False
+    """redraw the noise columns of stored observations each time they are read (ANF's code);
+    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000

@@ -19,8 +19,10 @@ feature i draws from the histogram of real feature i mod D_obs). Real features c
 What the scripts use:
 * `make_env(...)`: the wrapped env; `env.obs_dim_real`, `env.n_noise`, `env.noise_sampler` tell which columns are
   real (`0 .. obs_dim_real - 1`) and how to draw noise.
-* `NoiseSampler.refresh_(x)`: the read-time noise redraw behind `--noise-resample`. It overwrites the noise
-  columns of stored observations (or of `[obs, action]` rows: the noise columns are the same) with fresh noise.
+* `NoiseSampler.refresh_(x)`: the read-time noise redraw behind `--noise-resample`, ANF's code's variant. It
+  overwrites the noise columns of stored observations (or of `[obs, action]` rows: the noise columns are the same)
+  with fresh noise. By default the scripts do not call it: an observation keeps the noise the environment returned,
+  as any environment's would in a buffer (B-Pref's included).
 * `build_histograms(observations, path)` / `load_histograms(path)`: the `.npz` used by `--noise-type imitate`.
 * `check_env_args(...)`: the input checks, raising `ValueError` with one line that names the flag.
 * `env.rng_state()` / `env.set_rng_state(...)` and `replay_episode(...)`: the env's part of a script's `state.pt`.

@@ -29,17 +29,18 @@ its probability >= `surf_tau`; averaged over the whole unlabelled minibatch (Fix
 round trains ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau
 0.99 and mu 1 (the reference's README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
 
-Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query
-scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
-them after round one). Each asked query counts against the budget; labels obtained are logged apart.
-The training accuracy counts only strict (non-equal) labels. The stored reward of a new transition
-comes from the current reward ensemble; the next relabel overwrites it. SURF: disagreement and
-entropy sampling score central steps; the teacher's skip and equal thresholds use central sums (the
-reference scores all stored steps, and its skip branch sums them). Pseudo-labels come from the
-cropped returns' forward pass, same redrawn noise (per-step rewards: the central sum is the member's
-central return). The unlabelled pool keeps all rounds' pairs (max_feedback x ratio at most). Logged
-loss and accuracy: labelled pairs, last pass over them; pseudo-label rate: whole round.
+Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
+B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
+(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
+teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
+query counts against the budget; labels obtained are logged apart. The training accuracy counts only
+strict (non-equal) labels. The stored reward of a new transition comes from the current reward
+ensemble; the next relabel overwrites it. SURF: disagreement and entropy sampling score central
+steps; the teacher's skip and equal thresholds use central sums (the reference scores all stored
+steps, and its skip branch sums them). Pseudo-labels come from the cropped returns' forward pass,
+same noise read (per-step rewards: the central sum is the member's central return). The
+unlabelled pool keeps all rounds' pairs (max_feedback x ratio at most). Logged loss and accuracy:
+labelled pairs, last pass over them; pseudo-label rate: whole round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -89,8 +90,9 @@ class Args:
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
-    noise_resample: bool = True
-    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
+    noise_resample: bool = False
+    """redraw the noise columns of stored observations each time they are read (ANF's code);
+    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000

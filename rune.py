@@ -23,15 +23,16 @@ members' predictions, computed per new transition and at every relabel. The crit
 beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05,
 `--rune-beta-decay` 1e-5: the reference's values; it calls this geometric decay "linear decay").
 
-Choices where the paper is silent. `--noise-resample` redraws the noise columns of stored
-observations whenever they are read back (replay minibatches, reward training, relabelling, query
-scoring, k-NN), as ANF does. The teacher is B-Pref's, thresholds as written (the reference squares
-them after round one). Each asked query counts against the budget; labels obtained are logged apart.
-Early stopping's accuracy counts only strict (non-equal) labels. The stored reward of a new
-transition comes from the current reward ensemble; the next relabel overwrites it.
-RUNE, as in its reference code: the bonus enters only the critic target (the actor sees it through
-Q), post-reset updates included, never pre-training (state-entropy reward) nor evaluation. Sigma is
-not normalised. beta_t decays from step 0, not from the first feedback round.
+Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
+B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
+(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
+teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
+query counts against the budget; labels obtained are logged apart. Early stopping's accuracy counts
+only strict (non-equal) labels. The stored reward of a new transition comes from the current reward
+ensemble; the next relabel overwrites it. RUNE, as in its reference code: the bonus enters only the
+critic target (the actor sees it through Q), post-reset updates included, never pre-training
+(state-entropy reward) nor evaluation. Sigma is not normalised. beta_t decays from step 0, not from
+the first feedback round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -73,8 +74,9 @@ class Args:
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
-    noise_resample: bool = True
-    """redraw the noise columns of stored observations each time they are read (as ANF does)"""
+    noise_resample: bool = False
+    """redraw the noise columns of stored observations each time they are read (ANF's code);
+    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000

@@ -4,6 +4,10 @@ Issue 18 moved code around without changing what it computes; later changes to t
 either (a change that does is a numerics change: it lands before the runs that use it, and this reference moves).
 Each test runs the script as it was at the reference commit (with that commit's `ene.py`) and as it is now, with the
 same tiny configuration through every phase, and compares every TensorBoard point but SPS and every checkpoint entry.
+
+Both noise variants are pinned. `--noise-resample` (the reference's default) gives the reference's redrawn runs in
+every script. The default, the noise stored, gives the reference's `--no-noise-resample` runs, the numerics of the
+stored-noise study, in the four scripts that study ran (the other eight share their storage code byte for byte).
 """
 import os
 import subprocess
@@ -36,6 +40,10 @@ ARGS = {
     "sac.py": ORACLE, "anf_sac.py": ORACLE + ["--agent-topology-period", "100"],
 }
 RUN = ["--no-cuda", "--seed", "3", "--exp-name", "numerics", "--run-name", "numerics"]  # runs/numerics
+# variant -> (the current script's flags, the reference's flags) for the same environment
+VARIANTS = {"redrawn": (["--noise-resample"], []), "stored, the default": ([], ["--no-noise-resample"])}
+STORED_NOISE_STUDY = ("pebble.py", "r2n_pebble.py", "sac.py", "anf_sac.py")
+CASES = [(script, "redrawn") for script in ARGS] + [(script, "stored, the default") for script in STORED_NOISE_STUDY]
 # The checkpoint's `args` equal the reference's but for flags added or re-defaulted since that only say when state.pt
 # is written (issue 19: --state-minutes added, --checkpoint-freq from 10000 to None); none touches training.
 NOT_TRAINING = ("state_minutes", "checkpoint_freq")
@@ -69,13 +77,15 @@ def checkpoint_differences(a, b, key=""):
     return [] if type(a) is type(b) and a == b else [f"{key} ({a!r} vs {b!r})"]
 
 
-def run_both(script, reference, current):
+def run_both(script, variant, reference, current):
     """The reference and the current script at once (CI has two cores); a failure names the run and its stderr."""
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     runs = {}
+    current_flags, reference_flags = VARIANTS[variant]
     try:
-        for cwd, code in ((reference, reference / script), (current, os.path.join(ROOT, script))):
-            runs[cwd] = subprocess.Popen([sys.executable, str(code), *ARGS[script], *RUN], cwd=cwd, env=env,
+        for cwd, code, flags in ((reference, reference / script, reference_flags),
+                                 (current, os.path.join(ROOT, script), current_flags)):
+            runs[cwd] = subprocess.Popen([sys.executable, str(code), *ARGS[script], *flags, *RUN], cwd=cwd, env=env,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         for cwd, process in runs.items():
             _, stderr = process.communicate(timeout=600)
@@ -87,14 +97,14 @@ def run_both(script, reference, current):
                 process.communicate()
 
 
-@pytest.mark.parametrize("script", list(ARGS))
-def test_numerics_equal_the_reference(script, tmp_path):
+@pytest.mark.parametrize("script, variant", CASES)
+def test_numerics_equal_the_reference(script, variant, tmp_path):
     reference, current = tmp_path / "reference", tmp_path / "current"
     reference.mkdir()
     current.mkdir()
     for path in (script, "ene.py"):  # the reference script imports the reference ene.py beside it
         (reference / path).write_bytes(reference_source(path))
-    run_both(script, reference, current)
+    run_both(script, variant, reference, current)
 
     old, new = (points(cwd / "runs" / "numerics") for cwd in (reference, current))
     added = sorted(tag for tag in set(new) - set(old) if tag.startswith(ADDED_TAGS))

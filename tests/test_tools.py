@@ -258,6 +258,31 @@ def test_runs_with_other_numerics_are_never_averaged_or_compared(tmp_path):
 
 
 @needs_analysis
+def test_runs_of_the_two_noise_variants_are_never_averaged_or_compared(tmp_path):
+    """Noise redrawn and noise stored are two environments: a stored run is skipped from a redrawn group with one line,
+    and a stored method gets no test against a redrawn baseline. A run recorded before `--noise-resample` existed
+    counts as redrawn: it pools with the redrawn runs, and a stored method is not compared with it."""
+    root = str(tmp_path / "runs")
+    for seed in (1, 2, 3):
+        write_run(root, "cheetah-run", 0.9, 1000, "pebble", seed, [1.0, 2.0, 3.0, 4.0, 5.0 + seed],
+                  **({} if seed == 1 else {"noise_resample": True}))  # seed 1: recorded before the flag
+        write_run(root, "cheetah-run", 0.9, 1000, "r2n_pebble", seed, [1.0, 2.0, 3.0, 4.0, 6.0 + seed],
+                  noise_resample=False)
+    write_run(root, "cheetah-run", 0.9, 1000, "pebble", 4, [9.0] * 5, noise_resample=False)
+    assert analyze.main(analyze.Args(log_dirs=(root,), output_dir=str(tmp_path / "out"), plots=False)) == 0
+    runs = {os.path.basename(os.path.dirname(r["path"])): r for r in read_csv(tmp_path / "out" / "runs.csv")}
+    assert runs["cheetah-run__pebble__4__100"]["reason"] == (
+        "mismatched settings: noise_resample=False (group: True) (noise redrawn and stored: never averaged together)")
+    assert runs["cheetah-run__pebble__1__100"]["status"] == "used"
+    rows = {r["method"]: r for r in read_csv(tmp_path / "out" / "final_return.csv")}
+    assert rows["pebble"]["seeds"] == "3"
+    row = rows["r2n_pebble"]
+    assert row["p_value"] in ("", "nan") and row["diff"] in ("", "nan") and row["seeds"] == "3"
+    assert ("not compared with pebble: the noise is redrawn in one and stored in the other (noise_resample=False vs "
+            "True); runs of different environments are never compared") in row["notes"]
+
+
+@needs_analysis
 def test_run_settings_that_keep_the_numbers_are_averaged_together(tmp_path):
     """--cuda-graph (the same numbers as eager), --parallel-eval (the same returns) and --state-minutes (when the state
     is written) do not change what a run learns: runs that differ in them, or were recorded before they existed, are
@@ -407,10 +432,11 @@ def test_presets_expand_to_the_paper_grids():
     by_id = {r.run_id: r for r in study}
     scale = ["--total-timesteps", "80000", "--hidden-dim", "256", "--batch-size", "128"]
     pebble_run = by_id["r2n_pebble_no_early_stop__cartpole-swingup__noise0.9__budget400__seed2"].command
-    assert list(pebble_run[-12:]) == ["--reward-stop-accuracy", "1.1", *scale, "--feedback-freq", "2000",
-                                      "--queries-per-round", "25"]
+    assert list(pebble_run[-13:]) == ["--reward-stop-accuracy", "1.1", "--noise-resample", *scale, "--feedback-freq",
+                                      "2000", "--queries-per-round", "25"]
     assert list(by_id["sac__cartpole-swingup__noise0.95__budgetnone__seed3"].command[-6:]) == scale  # no feedback flags
-    assert "--no-noise-resample" in by_id["pebble_stored_noise__cartpole-swingup__noise0.9__budget400__seed1"].command
+    stored_arm = by_id["pebble_stored_noise__cartpole-swingup__noise0.9__budget400__seed1"].command
+    assert "--no-noise-resample" in stored_arm and "--noise-resample" not in stored_arm
 
     # the stored-noise study (results/stored-noise/PROTOCOL.md): the cheetah study's runs, each storing its noise
     cheetah, stored = grid(preset="cheetah-study"), grid(preset="stored-noise")
@@ -420,7 +446,7 @@ def test_presets_expand_to_the_paper_grids():
         run_id = original.run_id.replace(f"{original.method}__", f"{method}__", 1)
         (run,) = [r for r in stored if r.run_id == run_id]
         assert run.command[1] == original.command[1]  # the same script
-        expected = list(original.command[2:])
+        expected = [a for a in original.command[2:] if a != "--noise-resample"]
         expected[1] = method  # --exp-name
         expected[expected.index("--run-name") + 1] = run_id
         position = expected.index("--run-name") + 2
@@ -437,7 +463,7 @@ def test_presets_expand_to_the_paper_grids():
     repeat = by_id["pebble_repeat__cheetah-run__noise0.9__budget1000__seed3"].command
     (original,) = [r for r in cheetah if r.run_id == "pebble__cheetah-run__noise0.9__budget1000__seed3"]
     assert [a for a in repeat if "pebble" not in a] == [a for a in original.command if "pebble" not in a]
-    assert not [a for a in (*repeat, *agent) if "noise-resample" in a]  # the default environment: noise redrawn
+    assert "--noise-resample" in repeat and "--noise-resample" in agent  # the cheetah study's environment
 
 
 def test_free_grids_and_overrides():
@@ -1641,3 +1667,78 @@ def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log
             else:
                 assert math.isclose(float(new[column]), float(old[column]), rel_tol=1e-9, abs_tol=1e-9), \
                     (new["method"], column, new[column], old[column])
+
+
+# Fields of a run's hyperparameter table that say where and when it ran, not what it computed: the script's own
+# folder (`noise_histograms` is compared by file name), and the flags that only say when `state.pt` is written.
+WHERE_AND_WHEN = ("state_minutes", "checkpoint_freq")
+
+
+def recorded_hparams(folder: str) -> dict:
+    """The hyperparameter table of a committed run: its first event file's, read up to it (the scripts write it
+    first; a resumed run's later files have none)."""
+    from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+    paths = sorted(glob.glob(os.path.join(folder, "events.out.tfevents.*")), key=analyze.natural_order)
+    for event in EventFileLoader(paths[0]).Load():
+        for value in event.summary.value:
+            if value.tag.startswith("hyperparameters"):
+                return analyze.parse_hparams(value.tensor.string_val[0].decode())
+    raise AssertionError(f"{paths[0]}: no hyperparameter table")
+
+
+def preset_differences(preset: str, folder: str) -> list:
+    """Where the command that `preset` gives at HEAD for the committed run in `folder`, parsed by its script, differs
+    from the hyperparameters the run recorded. A flag the scripts gained after the run counts at its value then
+    (`analyze.ADDED_FLAG_DEFAULTS`: before `--noise-resample`, the noise was redrawn)."""
+    import tyro
+
+    (run,) = [r for r in benchmark.expand(benchmark.Args(preset=preset)) if r.run_id == os.path.basename(folder)]
+    module = importlib.import_module(os.path.basename(run.command[1])[:-3])
+    args = tyro.cli(module.Args, args=list(run.command[2:]))
+    module.validate_args(args)
+    recorded = {**{k: v for k, v in analyze.ADDED_FLAG_DEFAULTS.items() if k in vars(args)},
+                **recorded_hparams(folder)}
+    differ = []
+    for key, value in vars(args).items():
+        if key in WHERE_AND_WHEN or key not in recorded:
+            continue
+        now, then = analyze.parse_value(str(value)), recorded[key]
+        if key == "noise_histograms" and now is not None and then is not None:
+            now, then = os.path.basename(now), os.path.basename(then)
+        if now != then:
+            differ.append(f"{key}: {now!r} at HEAD, {then!r} recorded")
+    return differ
+
+
+def committed_runs() -> list:
+    """(preset, folder) of every committed run that has a `done` file, by the preset whose results folder holds it."""
+    return [(preset, os.path.dirname(done)) for preset, results in sorted(benchmark.RESULTS.items())
+            for done in sorted(glob.glob(os.path.join(ROOT, results, "*", "done")))]
+
+
+@needs_analysis
+def test_every_committed_run_is_its_preset_at_head():
+    """Every committed study run, rerun from its preset at HEAD (`--dry-run`'s command), is the run it was: its
+    command, parsed by its script, gives every hyperparameter the run recorded, the noise variant included. So a
+    change of a default that a preset does not pin fails here, and every `done` file under `results/` belongs to a
+    preset's results folder."""
+    sys.path.insert(0, ROOT)
+    runs = committed_runs()
+    every_done = {os.path.dirname(p) for p in glob.glob(os.path.join(ROOT, "results", "**", "done"), recursive=True)}
+    assert every_done == {folder for _, folder in runs}, "a committed run that no preset's results folder holds"
+    failures = {os.path.relpath(folder, ROOT): d for preset, folder in runs if (d := preset_differences(preset, folder))}
+    assert not failures, failures
+
+
+@needs_analysis
+def test_a_preset_that_loses_its_variant_flag_no_longer_reproduces_its_runs(monkeypatch):
+    """The check above can fail: without its `--noise-resample`, the cheetah study's preset gives the stored
+    environment, which its committed runs never saw."""
+    sys.path.insert(0, ROOT)
+    folder = os.path.join(ROOT, "results", "cheetah-study", "pebble__cheetah-run__noise0.9__budget1000__seed1")
+    assert preset_differences("cheetah-study", folder) == []
+    unpinned = tuple(part._replace(flags=tuple(f for f in part.flags if f != "--noise-resample"))
+                     for part in benchmark.PRESETS["cheetah-study"])
+    monkeypatch.setitem(benchmark.PRESETS, "cheetah-study", unpinned)
+    assert preset_differences("cheetah-study", folder) == ["noise_resample: False at HEAD, True recorded"]
