@@ -11,11 +11,16 @@ Backspace or "undo" takes back the last answer; after the last query "submit rou
 `labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library only
 (plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
 
+Clips are rendered once and kept in memory by the digest of the queries they show, so a run folder used again (new
+queries under old round numbers) gets new clips; beyond `--clip-cache-mb` the least recently shown are dropped. The
+page asks for the state every 2 s; the app then reads only the files that have changed (by inode, size and mtime).
+
 Labels you can trust:
 - A round's labels file is written once. The app writes a temporary file, fsyncs it, then hard-links it to
   `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
   each exactly 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another
-  tab, another app, a script) gets HTTP 409 and changes nothing.
+  tab, another app, a script) gets HTTP 409 and changes nothing. It gets the mode of the run's other files (0666
+  less the umask).
 - A person's answers live in the page until the app says they are saved: the browser keeps them (localStorage, by
   run and round, for the round's queries only), so a reload, a closed tab or a failed submit (HTTP 500, the app
   gone) loses none, and the page says what failed. A 200 drops them; a 409, or a round answered elsewhere (which
@@ -25,14 +30,18 @@ Labels you can trust:
   come from the page's own origin (else 403) and send `Content-Type: application/json` (else 415), which a page of
   another origin can send only after a CORS preflight, which gets 405.
 - A malformed labels file leaves its round pending; the page shows why it is not valid, and submitting the round's
-  answers moves it aside to `labels/{round}.json.rejected-{unix time}` (nothing a person wrote is deleted).
+  answers moves it aside to `labels/{round}.json.rejected-{unix time}` (nothing a person wrote is deleted). A labels
+  file that cannot be read at all (a folder at `labels/{round}.json`) is a notice saying what to do; a submit gets
+  HTTP 500 and the same sentence, and the page keeps the answers.
 - The page tells the run's state from the run's `teacher.json` when there is one (task, labels so far, training at
   step s, finished, stopped, and "not responding": a run waiting with no news for 15 s, or a run of this machine
-  whose process has gone), else from the run's files alone, with one line saying why when it cannot read it.
+  whose process has gone), else from the run's files alone, with one line saying why when it cannot read it (a
+  NaN or Infinity in it too: `/api/state` is always strict JSON).
 - A bad request gets its HTTP code and one line (404, 400, 403, 405 for methods other than GET, HEAD and POST, 413
   above 64 KiB, 415), never a traceback, and the app serves on; a port in use is one line on stderr and exit code 1.
 
-The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file. The app reads
+The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file; a round's number
+is written as the run writes it (`00` is no round). The app reads
 `teacher.json` (keys task, run, pid, host, phase, round, queries, asked, labelled, budget, step, total_steps, message,
 updated; written by the run) but never writes it.
 
@@ -50,16 +59,17 @@ import ipaddress
 import json
 import os
 import re
+import secrets
 import socket
 import sys
-import tempfile
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Optional
-from urllib.parse import urlsplit
+from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 import tyro
@@ -84,6 +94,9 @@ class Args:
     """the address to bind; the default serves this machine only (use an SSH tunnel from elsewhere)"""
     fps: int = 25
     """frames per second of the clips"""
+    clip_cache_mb: float = 256
+    """megabytes of rendered clips kept in memory (about 0.35 MB a clip), the least recently shown dropped first;
+    a dropped clip is rendered again when asked for"""
 
 
 class Refused(Exception):
@@ -94,17 +107,78 @@ class Refused(Exception):
         self.code = code
 
 
+ROUND = r"(0|[1-9][0-9]*)"  # a round's number as the run writes it: each round has one name, so 00 is no round
+
+
 def rounds(run_dir: str) -> list:
     """The rounds with queries, in order."""
     return sorted(int(m.group(1)) for path in glob.glob(os.path.join(run_dir, "queries", "*.npz"))
-                  if (m := re.fullmatch(r"(\d+)\.npz", os.path.basename(path))))
+                  if (m := re.fullmatch(ROUND + r"\.npz", os.path.basename(path))))
 
 
-def load_queries(run_dir: str, round_index: int) -> dict:
-    """The task and the physics states (n, 2, T, D) of a round's queries; Refused(404) if the round has none."""
+class ReadOnChange:
+    """What `make` makes of a file's bytes, kept by path and made again only when the file changes (its inode, size,
+    mtime or ctime): the page asks for the state every 2 s, and then reads no file that has not changed, so a poll
+    costs a stat per round however long the run. The run replaces its files (a new inode); a file edited in place
+    gets a new mtime."""
+
+    def __init__(self, make):
+        self.make, self.kept, self.lock = make, {}, threading.Lock()
+
+    def __call__(self, path: str):
+        seen = stamp(os.stat(path))  # FileNotFoundError if there is none
+        with self.lock:
+            kept = self.kept.get(path)
+        if kept is not None and kept[0] == seen:
+            return kept[1]
+        with open(path, "rb") as f:  # IsADirectoryError for a folder
+            seen = stamp(os.fstat(f.fileno()))  # of the bytes read: the file may have changed since the stat
+            made = self.make(f.read())
+        with self.lock:
+            self.kept[path] = seen, made
+        return made
+
+
+def stamp(stat: os.stat_result) -> tuple:
+    return stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns
+
+
+@dataclass(frozen=True)
+class Queries:
+    env_id: str
+    n: int  # the number of queries
+    digest: str  # of the task and the physics states: the same queries, the same digest (a resumed run rewrites its
+                 # file with other bytes, the same queries); a clip is kept, and the page keeps answers, by it
+
+
+def parse_queries(content: bytes) -> tuple:
+    """The Queries of a queries file's bytes, and their physics states (n, 2, T, D)."""
+    with np.load(io.BytesIO(content)) as data:
+        env_id, physics = str(data["env_id"]), data["physics"]
+    digest = hashlib.sha256(f"{env_id} {physics.dtype} {physics.shape}".encode() + physics.tobytes()).hexdigest()
+    return Queries(env_id, len(physics), digest[:16]), physics
+
+
+QUERIES = ReadOnChange(lambda content: parse_queries(content)[0])  # not the physics: a few MB a round
+
+
+def queries_path(run_dir: str, round_index: int) -> str:
+    return os.path.join(run_dir, "queries", f"{round_index}.npz")
+
+
+def read_queries(run_dir: str, round_index: int) -> Queries:
+    """A round's Queries, read only when its file has changed; Refused(404) if the round has none."""
     try:
-        with np.load(os.path.join(run_dir, "queries", f"{round_index}.npz")) as data:
-            return {"env_id": str(data["env_id"]), "physics": data["physics"]}
+        return QUERIES(queries_path(run_dir, round_index))
+    except FileNotFoundError:
+        raise Refused(404, f"round {round_index} has no queries (queries/{round_index}.npz)") from None
+
+
+def load_queries(run_dir: str, round_index: int) -> tuple:
+    """A round's Queries and physics states, read now; Refused(404) if the round has none."""
+    try:
+        with open(queries_path(run_dir, round_index), "rb") as f:
+            return parse_queries(f.read())
     except FileNotFoundError:
         raise Refused(404, f"round {round_index} has no queries (queries/{round_index}.npz)") from None
 
@@ -135,9 +209,20 @@ def parse_answers(text: bytes, n: int) -> list:
 
 def read_labels(path: str, n: int) -> list:
     """The answers of the labels file `path` for a round of n queries: ValueError if it is not valid,
-    FileNotFoundError if there is none."""
+    FileNotFoundError if there is none, another OSError (IsADirectoryError) if it cannot be read."""
     with open(path, "rb") as f:
         return parse_answers(f.read(), n)
+
+
+LABEL_FILES = ReadOnChange(bytes)  # a labels file's bytes, for the state; a writer reads the file itself, now
+
+
+def unreadable(round_index: int, error: OSError) -> str:
+    """What a person does about a labels file that neither the run nor the app can read (a folder, say)."""
+    name = f"labels/{round_index}.json"
+    what = "is a folder, not a file" if isinstance(error, IsADirectoryError) else f"cannot be read ({error.strerror})"
+    return (f"{name} {what}: the run cannot read round {round_index}'s labels from it, nor can this page write them; "
+            f"move it away (mv {name} {name}.moved), then submit round {round_index}")
 
 
 def is_valid(path: str, n: int) -> bool:
@@ -190,12 +275,12 @@ WRITING = threading.Lock()  # the app's own writers, one at a time; the hard lin
 def write_labels(run_dir: str, round_index: int, body: bytes):
     """Write the answers in `body` as the round's labels file, once: Refused(409) if a valid one exists, ValueError
     if the answers are not valid. A reader (the run) sees no file or the whole file, never a part."""
-    n = len(load_queries(run_dir, round_index)["physics"])
+    n = read_queries(run_dir, round_index).n
     answers = parse_answers(body, n)
     path = labels_path(run_dir, round_index)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with WRITING:
-        fd, tmp = tempfile.mkstemp(prefix=f".{round_index}.json.", suffix=".tmp", dir=os.path.dirname(path))
+        fd, tmp = create_temporary(os.path.dirname(path), f".{round_index}.json.")
         try:
             with os.fdopen(fd, "w") as f:
                 json.dump(answers, f)
@@ -206,11 +291,26 @@ def write_labels(run_dir: str, round_index: int, body: bytes):
                     os.link(tmp, path)  # unlike a rename, fails if the file exists
                     return
                 except FileExistsError:
-                    if keeps_existing(path, n):
+                    try:
+                        answered = keeps_existing(path, n)
+                    except OSError as e:  # a folder in the way: the person moves it, the page keeps the answers
+                        raise Refused(500, unreadable(round_index, e)) from None
+                    if answered:
                         raise Refused(409, f"round {round_index} is already answered (labels/{round_index}.json); "
                                            "a round's labels are written once and never change") from None
         finally:
             os.remove(tmp)
+
+
+def create_temporary(folder: str, prefix: str) -> tuple:
+    """A new file `{folder}/{prefix}{random}.tmp`, open for writing: (its descriptor, its path). Its mode is the one
+    `open` gives every other file of the run (0666 less the umask, group-readable as a rule), not mkstemp's 0600."""
+    while True:
+        path = os.path.join(folder, f"{prefix}{secrets.token_hex(8)}.tmp")
+        try:
+            return os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666), path
+        except FileExistsError:  # a name taken already: draw another
+            pass
 
 
 TEACHER_KEYS = ("task", "run", "pid", "host", "phase", "round", "queries", "asked", "labelled", "budget", "step",
@@ -234,6 +334,11 @@ def read_teacher(run_dir: str) -> tuple:
     missing = [key for key in TEACHER_KEYS if key not in teacher]
     if missing:
         return None, f"it lacks the keys {', '.join(missing)}"
+    for key, value in teacher.items():
+        try:
+            json.dumps(value, allow_nan=False)  # json reads NaN, Infinity and 1e999, which are no JSON to send on
+        except ValueError:
+            return None, f"{key} is {json.dumps(value)}, not a finite number"
     # the app computes with these two: the age of the news, and whether the run's process lives
     if isinstance(teacher["updated"], bool) or not isinstance(teacher["updated"], (int, float)):
         return None, f"updated is {json.dumps(teacher['updated'])}, not a number"
@@ -267,18 +372,18 @@ def silent_for(teacher: dict) -> Optional[float]:
 def state(run_dir: str) -> dict:
     """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
     `teacher.json` when it has one."""
-    teacher, unreadable = read_teacher(run_dir)
-    pending, n, digest, malformed, answered, labels, task = None, None, None, None, 0, 0, None
+    teacher, problem = read_teacher(run_dir)
+    pending, n, digest, malformed, blocked, answered, labels, task = None, None, None, None, None, 0, 0, None
     for r in rounds(run_dir):
-        queries = load_queries(run_dir, r)
-        task = queries["env_id"]
+        queries = read_queries(run_dir, r)
+        task = queries.env_id
         try:
-            answers = read_labels(labels_path(run_dir, r), len(queries["physics"]))
-        except (FileNotFoundError, ValueError) as e:
+            answers = parse_answers(LABEL_FILES(labels_path(run_dir, r)), queries.n)
+        except (OSError, ValueError) as e:  # FileNotFoundError: not answered yet
             if pending is None:
-                pending, n = r, len(queries["physics"])
-                digest = hashlib.sha256(queries["physics"].tobytes()).hexdigest()[:16]
+                pending, n, digest = r, queries.n, queries.digest
                 malformed = str(e) if isinstance(e, ValueError) else None
+                blocked = None if isinstance(e, (ValueError, FileNotFoundError)) else unreadable(r, e)
             continue
         answered += 1
         labels += sum(a != "skip" for a in answers)
@@ -287,38 +392,55 @@ def state(run_dir: str) -> dict:
         "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
         "round": pending,  # the lowest round with queries and no valid labels file, or None
         "n": n,  # its number of queries
-        "queries_digest": digest,  # of its queries' physics states: the same queries (a resumed run's too), the same
-                                   # digest; the page keeps a round's answers in the browser for these queries only
+        "queries_digest": digest,  # Queries.digest: the page keeps a round's answers for these queries only
         "malformed": malformed,  # why its labels file, if it has one, is not valid
+        "blocked": blocked,  # why its labels file cannot be read (a folder in its place), and what to do; or None
         "rounds_answered": answered,  # rounds with a valid labels file
         "labels": teacher["labelled"] if teacher else labels,  # answers other than "skip": the run's count, else the files'
         "teacher": teacher,  # teacher.json as the run wrote it, or None
-        "teacher_problem": unreadable and f"teacher.json cannot be read ({unreadable}): the page shows what the run's "
-                                          "files say",  # or None
+        "teacher_problem": problem and f"teacher.json cannot be read ({problem}): the page shows what the run's "
+                                      "files say",  # or None
         "silent_for": silent_for(teacher) if teacher else None,  # seconds since the run's last news, if not responding
     }
 
 
 class Clips:
-    """GIF clips of the segments of a round, rendered once and kept."""
+    """GIF clips of the queries' segments, rendered once and kept while they fit in `max_bytes`, the least recently
+    shown dropped first. A clip is kept by the digest of the queries it shows, not by its round's number: a run
+    folder used again (other queries under the same round numbers) gets its own clips."""
 
-    def __init__(self, run_dir: str, fps: int):
-        self.run_dir, self.fps, self.cache, self.lock = run_dir, fps, {}, threading.Lock()
+    def __init__(self, run_dir: str, fps: int, max_bytes: int):
+        self.run_dir, self.fps, self.max_bytes, self.lock = run_dir, fps, max_bytes, threading.Lock()
+        self.kept, self.kept_bytes = OrderedDict(), 0  # (digest, query, side) -> GIF, least recently shown first
 
-    def gif(self, round_index: int, query: int, side: int) -> bytes:
+    def gif(self, round_index: int, query: int, side: int, digest: Optional[str] = None) -> bytes:
+        """The clip of a query's segment (side 0: the first); with `digest`, only of the queries of that digest."""
         import imageio.v3 as iio
 
-        key = (round_index, query, side)
         with self.lock:  # one MuJoCo renderer at a time
-            if key not in self.cache:
-                data = load_queries(self.run_dir, round_index)
-                if query >= len(data["physics"]):
-                    raise Refused(404, f"round {round_index} has {len(data['physics'])} queries, not {query + 1}")
-                frames = ene.render_states(data["env_id"], data["physics"][query, side])
+            key = self.key(round_index, read_queries(self.run_dir, round_index), query, side, digest)
+            if key not in self.kept:
+                queries, physics = load_queries(self.run_dir, round_index)
+                key = self.key(round_index, queries, query, side, digest)  # the file may have changed meanwhile
+                frames = ene.render_states(queries.env_id, physics[query, side])
                 buffer = io.BytesIO()
                 iio.imwrite(buffer, frames, extension=".gif", duration=1000 / self.fps, loop=0)
-                self.cache[key] = buffer.getvalue()
-            return self.cache[key]
+                self.kept[key] = buffer.getvalue()
+                self.kept_bytes += len(self.kept[key])
+            self.kept.move_to_end(key)
+            clip = self.kept[key]
+            while self.kept_bytes > self.max_bytes:  # a clip larger than the bound is served, not kept
+                self.kept_bytes -= len(self.kept.popitem(last=False)[1])
+            return clip
+
+    @staticmethod
+    def key(round_index: int, queries: Queries, query: int, side: int, digest: Optional[str]) -> tuple:
+        if digest is not None and digest != queries.digest:  # a page that has not seen the new queries yet
+            raise Refused(404, f"round {round_index}'s queries have changed since the page asked for this clip: "
+                               "it shows the new ones within 2 s")
+        if query >= queries.n:
+            raise Refused(404, f"round {round_index} has {queries.n} queries, not {query + 1}")
+        return queries.digest, query, side
 
 
 PAGE = """<!doctype html>
@@ -591,7 +713,7 @@ def make_handler(run_dir: str, clips: Clips, address: Address):
                 host = self.headers.get("Host")
                 if not address.serves(host):  # a page under another name (DNS rebinding)
                     raise Refused(403, f"refused: {host or 'no Host header'} is not this app's address ({address})")
-                reply = route(urlsplit(self.path).path)
+                reply = route(urlsplit(self.path))
             except Refused as e:
                 reply = e.code, str(e).encode()
             except ValueError as e:
@@ -613,23 +735,25 @@ def make_handler(run_dir: str, clips: Clips, address: Address):
         def do_POST(self):
             self.answer(self.post)
 
-        def get(self, path: str) -> tuple:
-            if path == "/":
+        def get(self, url) -> tuple:
+            if url.path == "/":
                 return 200, PAGE.encode(), "text/html; charset=utf-8"
-            if path == "/api/state":
-                return 200, json.dumps(state(run_dir)).encode(), "application/json"
-            match = re.fullmatch(r"/clip/(\d+)/(\d+)/([01])\.gif", path)
+            if url.path == "/api/state":  # strict JSON, which a browser can read: no NaN or Infinity
+                return 200, json.dumps(state(run_dir), allow_nan=False).encode(), "application/json"
+            match = re.fullmatch(rf"/clip/{ROUND}/{ROUND}/([01])\.gif", url.path)
             if not match:
-                raise Refused(404, f"no such page: {path}")
+                raise Refused(404, f"no such page: {url.path}")
+            digest = parse_qs(url.query).get("queries", [None])[-1]  # the page names the queries it shows
             time.sleep(CLIP_DELAY)
-            return 200, clips.gif(*map(int, match.groups())), "image/gif"
+            return 200, clips.gif(*map(int, match.groups()), digest), "image/gif"
 
-        def post(self, path: str) -> tuple:
+        def post(self, url) -> tuple:
+            path = url.path
             origin = self.headers.get("Origin")  # a browser sends it with every POST; a script need not
             if origin is not None and origin.lower() not in (f"http://{self.headers['Host']}".lower(),
                                                              f"https://{self.headers['Host']}".lower()):
                 raise Refused(403, f"refused: only this app's page can write labels, not a page from {origin}")
-            match = re.fullmatch(r"/api/labels/(\d+)", path)
+            match = re.fullmatch(rf"/api/labels/{ROUND}", path)
             if not match:
                 raise Refused(404, f"no such page: {path}")
             # a page may send another origin a form or text unasked, but JSON only after a preflight (OPTIONS),
@@ -663,7 +787,8 @@ def main(args: Args) -> int:
         print(f"label_app: error: run_dir: no such folder: {args.run_dir}", file=sys.stderr)
         return 1
     try:
-        handler = make_handler(args.run_dir, Clips(args.run_dir, args.fps), Address(args.host))
+        clips = Clips(args.run_dir, args.fps, int(args.clip_cache_mb * 1e6))
+        handler = make_handler(args.run_dir, clips, Address(args.host))
         server = Server((args.host, args.port), handler)
     except OSError as e:
         flag = f"--port {args.port}" if e.errno == errno.EADDRINUSE else f"--host {args.host}"

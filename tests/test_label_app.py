@@ -206,8 +206,8 @@ def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
         assert len(state.pop("queries_digest")) == 16
         assert state == {
             "run": "ext", "task": "cartpole-swingup", "round": 1, "n": 3,
-            "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "rounds_answered": 1, "labels": 2,
-            "teacher": None, "teacher_problem": None, "silent_for": None}
+            "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "blocked": None,
+            "rounds_answered": 1, "labels": 2, "teacher": None, "teacher_problem": None, "silent_for": None}
         write_teacher(run, round=1, asked=3, labelled=2)
         state = get_state(address)
         assert state["teacher"]["phase"] == "waiting" and state["labels"] == 2 and state["silent_for"] is None
