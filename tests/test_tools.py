@@ -1742,3 +1742,42 @@ def test_a_preset_that_loses_its_variant_flag_no_longer_reproduces_its_runs(monk
                      for part in benchmark.PRESETS["cheetah-study"])
     monkeypatch.setitem(benchmark.PRESETS, "cheetah-study", unpinned)
     assert preset_differences("cheetah-study", folder) == ["noise_resample: False at HEAD, True recorded"]
+
+
+@needs_analysis
+def test_stored_table_pilot_decisions_follow_the_protocol_rules(tmp_path, monkeypatch):
+    """results/stored-table/power.py on synthetic pilot runs: rule 1 (learns: twice the first evaluation and 50 above
+    it), rule 3 (the larger CV), rule 5 (seeds and powered or exploratory), rule 6 (cartpole's length), and a task whose
+    runs are not all in is named, not decided."""
+    spec = importlib.util.spec_from_file_location("stored_table_power",
+                                                  os.path.join(ROOT, "results", "stored-table", "power.py"))
+    power = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(power)
+    monkeypatch.setattr(power, "PILOT", str(tmp_path))
+    steps = list(range(10_000, 250_001, 10_000))
+    flat = lambda first, end: [first] + [end] * (len(steps) - 1)  # noqa: E731 (reached by step 20 000)
+    runs = {("pebble_stored_noise", 901): flat(100.0, 300.0), ("pebble_stored_noise", 902): flat(100.0, 500.0),
+            ("r2n_pebble_stored_noise", 901): flat(100.0, 600.0), ("sac_stored_noise", 901): flat(100.0, 180.0),
+            ("anf_sac_stored_noise", 901): flat(300.0, 700.0)}
+    for (method, seed), returns in runs.items():
+        folder = power.run_folder("cartpole-swingup", method, seed)
+        write_run(os.path.dirname(folder), "cartpole-swingup", 0.9, 400, method, seed, returns, steps=steps)
+        os.replace(os.path.join(os.path.dirname(folder), f"cartpole-swingup__{method}__{seed}__100"), folder)
+        open(os.path.join(folder, "done"), "w").close()
+    lines = power.report("cartpole-swingup", 0.315)
+    assert "| sac_stored_noise seed 901 | 100.0 | 180.0 | no |" in lines  # 180 < 2 x 100
+    assert "| anf_sac_stored_noise seed 901 | 300.0 | 700.0 | yes |" in lines
+    assert "- Stop rule (2): anf_sac_stored_noise learns." in lines
+    cv = np.std([300.0, 500.0], ddof=1) / 400.0  # 0.354 > 0.315: the pilot's
+    assert f"- Spread (3): pilot CV {cv:.3f} (PEBBLE 300.0 and 500.0), stored-noise study CV 0.315: CV = {cv:.3f}." in lines
+    d = (716.89 / 660.48 - 1) / (2 * cv)
+    assert analyze.power(d, 1.0, 10) < 0.5  # cartpole's +8.5%: exploratory, 8 seeds
+    assert f"- Seeds (5): 8 per arm, power {analyze.power(d, 1.0, 8):.2f}: exploratory." in lines
+    assert "- Length (6): 150000 steps" in lines
+    assert power.seeds_for(1.4) == (8, analyze.power(1.4, 1.0, 8), "powered")  # 8 already reach 0.8
+    assert power.seeds_for(1.25)[::2] == (9, "powered")
+    assert power.seeds_for(0.9)[::2] == (10, "powered")  # 0.8 out of reach, 10 above 0.5
+    os.remove(os.path.join(power.run_folder("cartpole-swingup", "sac_stored_noise", 901), "done"))
+    assert power.report("cartpole-swingup", 0.315) == [
+        "## cartpole-swingup: 4 of 5 pilot runs are in (missing: sac_stored_noise__cartpole-swingup__noise0.9__budgetnone"
+        "__seed901)"]
