@@ -5,11 +5,12 @@
 
 It shows the pending round's queries one at a time: the two segments as clips, side by side, rendered with MuJoCo's
 offscreen renderer from the physics states stored with each query. The answer is left, right, equal or skip, by
-mouse or keyboard (arrow keys, `=`/space, `s`); the answer buttons and keys wait until both clips of the query have
-loaded and been shown for a second (the next query's clips are fetched ahead), and a key held down answers once.
-Backspace or "undo" takes back the last answer; after the last query "submit round r" (or Enter) writes
-`labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library only
-(plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
+mouse or keyboard (arrow keys, `=`/space, `s` or `S`; a key with Ctrl, Alt or Meta is the browser's, never an
+answer; Enter or Space on a focused button presses that button); the answer buttons and keys wait until both clips
+of the query have loaded and been shown for a second (the next query's clips are fetched ahead), and a key held down
+answers once. Backspace or "undo" takes back the last answer; after the last query "submit round r" (or Enter)
+writes `labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library
+only (plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
 
 Clips are rendered once and kept in memory by the digest of the queries they show, so a run folder used again (new
 queries under old round numbers) gets new clips; beyond `--clip-cache-mb` the least recently shown are dropped. The
@@ -21,10 +22,13 @@ Labels you can trust:
   each exactly 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another
   tab, another app, a script) gets HTTP 409 and changes nothing. It gets the mode of the run's other files (0666
   less the umask).
-- A person's answers live in the page until the app says they are saved: the browser keeps them (localStorage, by
-  run and round, for the round's queries only), so a reload, a closed tab or a failed submit (HTTP 500, the app
-  gone) loses none, and the page says what failed. A 200 drops them; a 409, or a round answered elsewhere (which
-  the page notices within a poll, 2 s), drops them once the page has said so.
+- A person's answers live in the page until the app says they are saved: the tab keeps them (sessionStorage: each
+  tab its own, by run and round, for the round's queries only), so a reload or a failed submit (HTTP 500, the app
+  gone) loses none, and the page says what failed; a closed tab keeps them only if the browser reopens it
+  ("reopen closed tab"). A 200 drops them; a 409, a round answered elsewhere or new queries for the round (which
+  the page notices within a poll, 2 s) drop them once the page has said so.
+- The tabs of one browser tell each other (BroadcastChannel) which round they answer and their answers so far: a
+  tab shows at once that another tab is answering its round, with that tab's answers, before effort is spent twice.
 - Only the page's own origin can write labels. Every request must name the app's address in its Host header (a
   name of someone else's that resolves to this machine, DNS rebinding, gets 403); a POST with an Origin header must
   come from the page's own origin (else 403) and send `Content-Type: application/json` (else 415), which a page of
@@ -455,7 +459,7 @@ PAGE = """<!doctype html>
  #notices p, #message:not(:empty) { background: #fff3cd; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; }
 </style></head>
 <body>
-<h2>Which segment is better?</h2>
+<h2 id="question" hidden>Which segment is better?</h2>
 <p id="run"></p>
 <div id="notices"></div>
 <p id="progress">loading...</p>
@@ -478,30 +482,32 @@ const SHOWN_MS = 1000;  // a query takes answers once its clips have been shown 
                         // answer the next query, whose clips were fetched ahead and appear at once
 let state = null, timer = null;  // the app's last /api/state, and the next refresh
 let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
-let key = null, digest = null, storageProblem = null;  // where the browser keeps the answers, for which queries
+let key = null, digest = null, storageProblem = null;  // where this tab keeps the answers, for which queries
 let shown = 0, ready = false, ahead = [];  // queries shown (a late image of an earlier one is ignored), whether
                                            // this one takes answers, the next one's clips
-const clip = (r, i, side) => `/clip/${r}/${i}/${side}.gif`;
+const clip = (r, i, side) => `/clip/${r}/${i}/${side}.gif?queries=${digest}`;  // these queries' clip, not newer ones'
 const count = (k) => `${k} answer${k === 1 ? "" : "s"}`;
 const LABELS = {left: 0, right: 1, equal: 0.5, skip: "skip"};
+const SYMBOLS = {0: "\\u2190", 1: "\\u2192", 0.5: "=", skip: "s"};  // an answer as its key
 
-// The answers of a round stay in the browser's storage until the app says it has saved them: a reload, a closed
-// tab or a failed submit loses none. They are kept by run and round, with a digest of the round's queries, so that
-// another run of the same name never gets them.
+// The answers of a round stay in this tab's storage (sessionStorage: each tab has its own, and a reload keeps it)
+// until the app says it has saved them: a reload or a failed submit loses none. They are kept by run and round, with
+// the digest of the round's queries, so that another run of the same name never gets them.
 function keep(failure = null) {
   try {
-    localStorage.setItem(key, JSON.stringify({digest, answers, failure}));
+    sessionStorage.setItem(key, JSON.stringify({digest, answers, failure}));
     storageProblem = null;
   } catch (error) {
     storageProblem = `this browser cannot keep your answers (${error.message}): a reload would lose them`;
   }
+  tell("mine");
 }
 function forget(storageKey = key) {
-  try { localStorage.removeItem(storageKey); } catch (error) { /* nothing was kept */ }
+  try { sessionStorage.removeItem(storageKey); } catch (error) { /* nothing was kept */ }
 }
 function kept(storageKey) {  // the answers kept under storageKey, or null
   try {
-    const saved = JSON.parse(localStorage.getItem(storageKey));
+    const saved = JSON.parse(sessionStorage.getItem(storageKey));
     if (Array.isArray(saved?.answers) && saved.answers.every((a) => Object.values(LABELS).includes(a))) return saved;
   } catch (error) { /* none, or not the page's */ }
   return null;
@@ -509,25 +515,55 @@ function kept(storageKey) {  // the answers kept under storageKey, or null
 function forgetAnswered() {  // answers kept for rounds of this run that are no longer waiting: tell, then drop them
   const prefix = `r2n-labels/${state.run}/`, told = [];
   let storageKeys = [];
-  try { storageKeys = Object.keys(localStorage).filter((k) => k.startsWith(prefix)); } catch (error) { return; }
+  try { storageKeys = Object.keys(sessionStorage).filter((k) => k.startsWith(prefix)); } catch (error) { return; }
   for (const storageKey of storageKeys) {
     const r = Number(storageKey.slice(prefix.length)), saved = kept(storageKey);
     if (state.round !== null && r >= state.round) continue;
     const k = saved?.answers.length;
-    if (k) told.push(`your ${count(k)} to round ${r}, kept in this browser, ${k === 1 ? "was" : "were"} not used: ` +
+    if (k) told.push(`your ${count(k)} to round ${r}, kept in this tab, ${k === 1 ? "was" : "were"} not used: ` +
                      "it was answered elsewhere");
     forget(storageKey);
   }
   if (told.length) $("message").textContent = told.join("; ");
 }
-function start() {  // the round the app says is waiting, with the answers this browser kept for it
+
+// The tabs of this browser tell each other which round they answer, and their answers so far (BroadcastChannel):
+// a tab sees at once that another answers its round, before it spends effort on the same queries. A tab asks at
+// every poll; every other tab replies at once, a hidden one too (messages are not throttled as timers are).
+const TAB = Math.random().toString(36).slice(2);  // this page's name among the tabs
+const channel = typeof BroadcastChannel === "function" ? new BroadcastChannel("r2n-labels") : null;
+const others = new Map();  // another tab's name -> what it last said, and when (`heard`)
+const HEARD_MS = 5000;  // a tab not heard from this long has gone (closed without a word, or frozen)
+function tell(type) {  // "who": this tab asks the others; "mine": it says what it answers; "gone": it closes
+  channel?.postMessage({type, tab: TAB, run: state?.run, round, digest, answers});
+}
+if (channel) channel.onmessage = ({data}) => {
+  if (data.type === "who") tell("mine");
+  if (data.type === "gone" || data.round === null) others.delete(data.tab);
+  else others.set(data.tab, {...data, heard: Date.now()});
+  if (state !== null) render();
+};
+addEventListener("pagehide", () => tell("gone"));
+function othersNotice() {  // a sentence per other tab answering the pending round, with its answers
+  return [...others.values()].filter((other) => other.run === state.run && other.round === state.round &&
+                                              other.digest === state.queries_digest &&
+                                              Date.now() - other.heard < HEARD_MS).map((other) => {
+    const k = other.answers.length, given = other.answers.map((a) => SYMBOLS[a]).join(" ");
+    return `another tab of this browser is answering round ${other.round} too (` +
+      (k ? `its ${count(k)} so far: ${given}` : "no answers yet") + "): answer in one tab only; the first to " +
+      "submit is kept, and the other's answers are not used";
+  });
+}
+
+function start() {  // the round the app says is waiting, with the answers this tab kept for it
   round = state.round; n = state.n; digest = state.queries_digest; key = `r2n-labels/${state.run}/${round}`;
   const saved = kept(key), ours = saved?.digest === digest && saved.answers.length <= n;
   if (saved !== null && !ours) forget();  // kept for another run of the same name
   answers = ours ? saved.answers : [];
   if (answers.length)
-    $("message").textContent = `your ${count(answers.length)} to round ${round}, kept in this browser, are back` +
-      (saved.failure ? ` (the last submit: ${saved.failure})` : "");
+    $("message").textContent = `your ${count(answers.length)} to round ${round}, kept in this tab, ` +
+      `${answers.length === 1 ? "is" : "are"} back` + (saved.failure ? ` (the last submit: ${saved.failure})` : "");
+  tell("mine");
   show();
 }
 function enable(on) {
@@ -535,12 +571,13 @@ function enable(on) {
 }
 function hide() {  // no round on the page
   ++shown; ready = false; enable(false);
-  $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
+  $("question").hidden = $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
+  tell("mine");
 }
 function show() {  // the current query (one per answer so far), or the submit step after the last
   const i = answers.length, token = ++shown;
   ready = false; enable(false);
-  $("clips").hidden = true; $("answers").hidden = i === n; $("undo").hidden = i === 0;
+  $("clips").hidden = true; $("question").hidden = $("answers").hidden = i === n; $("undo").hidden = i === 0;
   $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
   if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
   $("progress").textContent = `round ${round}: query ${i + 1} of ${n}`;
@@ -562,10 +599,9 @@ function undo() {
   if (round === null || submitting || answers.length === 0) return;
   answers.pop(); keep(); show();
 }
-function answeredElsewhere() {  // the round on the page is no longer waiting: someone else's answers were saved
+function drop(why) {  // the round on the page is no longer the one waiting: say why, and what became of the answers
   const k = answers.length;
-  $("message").textContent = `round ${round} was answered elsewhere (another tab, another app or a script)` +
-    (k ? `: your ${count(k)} to it ${k === 1 ? "was" : "were"} not used` : "");
+  $("message").textContent = why + (k ? `: your ${count(k)} to it ${k === 1 ? "was" : "were"} not used` : "");
   forget(); round = null; hide();
 }
 async function submit() {
@@ -579,16 +615,16 @@ async function submit() {
     if (reply.ok || reply.status === 409) {  // saved, here or elsewhere: the answers are told about, then dropped
       $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)`
         : `round ${round} was already answered, perhaps in another tab: your answers for it were not used`;
-      forget(); round = null;
+      forget(); round = null; hide();
     } else {
       failure = `HTTP ${reply.status}: ${await reply.text()}`;
     }
   } catch (error) {  // the app is not there
     failure = `the app does not answer: ${error.message}`;
   }
-  if (failure !== null) {  // the answers stay, in the page and in the browser, to submit again
+  if (failure !== null) {  // the answers stay, in the page and in this tab's storage, to submit again
     keep(failure);
-    $("message").textContent = `round ${round} was not saved (${failure}); your answers are kept in this browser: ` +
+    $("message").textContent = `round ${round} was not saved (${failure}); your answers are kept in this tab: ` +
       "submit again";
     show();
   }
@@ -604,9 +640,11 @@ function render() {
   const t = state.teacher, notices = [];
   $("run").textContent = `${state.task ?? "task not known yet"} \\u00b7 run ${state.run} \\u00b7 ` +
     `${state.labels} labels so far` + (t ? ` (budget ${t.budget})` : "");
+  if (state.blocked !== null) notices.push(state.blocked);
   if (state.malformed !== null)
     notices.push(`labels/${state.round}.json is not valid: ${state.malformed}. Submitting round ${state.round}'s ` +
                  `answers from this page replaces it (the old file is kept as labels/${state.round}.json.rejected-...).`);
+  notices.push(...othersNotice());
   if (state.silent_for !== null)
     notices.push(`the run is not responding (last heard ${Math.round(state.silent_for)} s ago): ` +
                  "running the same command again resumes it");
@@ -621,12 +659,16 @@ async function refresh() {
     const reply = await fetch("/api/state");
     if (!reply.ok) throw new Error(await reply.text());
     state = await reply.json();
-    if (round !== null && !submitting && state.round !== round) answeredElsewhere();
+    if (round !== null && !submitting && state.round !== round)
+      drop(`round ${round} was answered elsewhere (another tab, another app or a script)`);
+    if (round !== null && !submitting && state.queries_digest !== digest)  // a new run in this run's folder
+      drop(`round ${round}'s queries have changed (a new run in the folder ${state.run}?)`);
     render();
     if (round === null && !submitting) {
       forgetAnswered();
       if (state.round !== null) start();
     }
+    tell("who");
   } catch (error) {
     $("notices").replaceChildren(Object.assign(document.createElement("p"),
       {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
@@ -635,9 +677,18 @@ async function refresh() {
 }
 for (const choice of Object.keys(LABELS)) $(`answer-${choice}`).onclick = () => answer(choice);
 $("undo").onclick = undo; $("submit").onclick = submit;
+// a button clicked with the mouse leaves the focus to the page, so that Space and Enter stay the page's keys
+document.addEventListener("click", (e) => { if (e.detail > 0) e.target.closest("button")?.blur(); });
+const KEYS = {ArrowLeft: () => answer("left"), ArrowRight: () => answer("right"), "=": () => answer("equal"),
+              " ": () => answer("equal"), s: () => answer("skip"), Backspace: undo, Enter: submit};
 document.addEventListener("keydown", (e) => {
-  const choice = {ArrowLeft: "left", ArrowRight: "right", "=": "equal", " ": "equal", s: "skip"}[e.key];
-  const action = choice ? () => answer(choice) : {Backspace: undo, Enter: submit}[e.key];
+  const typed = e.key.length === 1 && e.key !== " ";  // a character, which a keyboard may type with Shift ("=")
+  if (e.ctrlKey || e.altKey || e.metaKey || e.shiftKey && !typed) return;  // the browser's: zoom, save, back...
+  if (e.target.closest?.("button") && (e.key === "Enter" || e.key === " ")) {  // presses the focused button
+    if (e.repeat) e.preventDefault();  // once: a held key does not press it again
+    return;
+  }
+  const action = KEYS[typed ? e.key.toLowerCase() : e.key];  // "S" (Caps Lock) is "s"
   if (!action) return;
   e.preventDefault();
   if (!e.repeat) action();  // a key held down acts once

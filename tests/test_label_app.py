@@ -524,8 +524,8 @@ def test_label_app_run_states_in_a_headless_browser(tmp_path):
 
 
 def stored(driver):
-    """The answers the page keeps in this browser, by key."""
-    return driver.execute_script("return Object.fromEntries(Object.entries(localStorage))")
+    """The answers the page keeps in this tab, by key."""
+    return driver.execute_script("return Object.fromEntries(Object.entries(sessionStorage))")
 
 
 def answer_queries(driver, keys, first, n=3):
@@ -553,7 +553,7 @@ def test_label_app_keeps_answers_through_a_reload_and_a_server_error_in_a_headle
         answer_queries(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], first=1)
         driver.refresh()  # mid-round: the two answers are kept
         WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 3 of 3")
-        assert text("message") == "your 2 answers to round 0, kept in this browser, are back"
+        assert text("message") == "your 2 answers to round 0, kept in this tab, are back"
         answer_queries(driver, ["="], first=3)
         WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 3 answered")
         # the app cannot write a byte, as on a full disk: HTTP 500
@@ -561,11 +561,11 @@ def test_label_app_keeps_answers_through_a_reload_and_a_server_error_in_a_headle
         answer_round(driver, [])
         failure = "HTTP 500: OSError: [Errno 27] File too large"
         WebDriverWait(driver, 30).until(lambda d: text("message") == (
-            f"round 0 was not saved ({failure}); your answers are kept in this browser: submit again"))
+            f"round 0 was not saved ({failure}); your answers are kept in this tab: submit again"))
         assert text() == "round 0: all 3 answered"
         driver.refresh()  # after the failure: the answers are kept, and the page says what failed
         WebDriverWait(driver, 60).until(lambda d: text() == "round 0: all 3 answered")
-        assert text("message") == f"your 3 answers to round 0, kept in this browser, are back (the last submit: {failure})"
+        assert text("message") == f"your 3 answers to round 0, kept in this tab, are back (the last submit: {failure})"
         resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
         answer_round(driver, [])
         WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
@@ -601,7 +601,7 @@ def test_label_app_notices_a_round_answered_elsewhere_in_a_headless_browser(tmp_
         assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 200
         text = open_page(driver, address)
         WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
-        assert text("message") == "your 1 answer to round 1, kept in this browser, was not used: it was answered elsewhere"
+        assert text("message") == "your 1 answer to round 1, kept in this tab, was not used: it was answered elsewhere"
         assert stored(driver) == {}
 
 
@@ -609,8 +609,8 @@ def prefetched(driver, query):
     """Whether both clips of `query` of round 0 have arrived in the browser (fetched ahead, not shown yet)."""
     return driver.execute_script("""
         const query = arguments[0];
-        return [0, 1].every((side) =>
-            performance.getEntriesByName(new URL(`/clip/0/${query}/${side}.gif`, location).href).length > 0);
+        const fetched = performance.getEntriesByType("resource").map((entry) => new URL(entry.name).pathname);
+        return [0, 1].every((side) => fetched.includes(`/clip/0/${query}/${side}.gif`));
     """, query)
 
 

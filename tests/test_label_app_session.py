@@ -1,7 +1,9 @@
-"""The labelling app through a long session (issue 43): clips that follow the queries file and a memory bound on
-them, a folder in place of a labels file, a `teacher.json` with NaN, canonical round numbers, the labels files' mode,
-and a poll that reads no unchanged file."""
+"""The labelling page through a long session (issue 43): clips that follow the queries file and a memory bound on
+them, a tab's answers its own and the other tabs of the browser in view, keys with modifiers left to the browser, a
+folder in place of a labels file, a `teacher.json` with NaN, canonical round numbers, the labels files' mode, and
+a poll that reads no unchanged file."""
 import builtins
+import contextlib
 import json
 import os
 import stat
@@ -11,7 +13,8 @@ import numpy as np
 import pytest
 import tyro
 
-from test_label_app import get_state, make_run, request, serve, write_teacher
+from test_label_app import answer_queries, answer_round, get_state, make_run, open_page, request, serve, write_teacher
+from test_labelling import answers_enabled, chrome, needs_chromium
 from test_scripts import ROOT
 
 sys.path.insert(0, ROOT)
@@ -178,3 +181,155 @@ def test_label_app_poll_reads_no_unchanged_file(tmp_path, monkeypatch):
     assert sorted(opened) == ["labels/28.json", "queries/29.npz", "teacher.json"]
     assert second["queries_digest"] != first["queries_digest"] and second["labels"] == first["labels"] - 1
 
+
+def stored(driver):
+    """The answers this tab keeps, by key."""
+    return {key: json.loads(value)["answers"] for key, value in
+            driver.execute_script("return Object.fromEntries(Object.entries(sessionStorage))").items()}
+
+
+def new_tab(driver, address):
+    """A second tab of the same browser, on the page; the driver is then in it."""
+    driver.switch_to.new_window("tab")
+    return open_page(driver, address)
+
+
+@needs_chromium
+def test_label_app_tabs_keep_their_own_answers_in_a_headless_browser(tmp_path):
+    """Two tabs of one browser answer one round: each keeps its own answers, and a reload brings back its own."""
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        first = driver.current_window_handle
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT, Keys.ARROW_LEFT], first=1)
+        new_tab(driver, address)
+        answer_queries(driver, [Keys.ARROW_RIGHT], first=1)
+        driver.switch_to.window(first)
+        driver.refresh()
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 3 of 3")
+        assert text("message") == "your 2 answers to round 0, kept in this tab, are back"
+        answer_round(driver, ["="])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 0, 0.5]
+
+
+@needs_chromium
+def test_label_app_tabs_see_each_other_in_a_headless_browser(tmp_path):
+    """A tab sees at once that another tab of the browser is answering its round, with its answers; the notice goes
+    when the other tab closes."""
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    notice = ("another tab of this browser is answering round 0 too ({}): answer in one tab only; the first to submit "
+              "is kept, and the other's answers are not used")
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        first = driver.current_window_handle
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT, "s"], first=1)
+        text = new_tab(driver, address)
+        second = driver.current_window_handle
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == notice.format("its 2 answers so far: \u2190 s"))
+        assert text() == "round 0: query 1 of 3"  # told before answering
+        answer_queries(driver, ["="], first=1)
+        driver.switch_to.window(first)
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == notice.format("its 1 answer so far: ="))
+        driver.switch_to.window(second)
+        driver.close()
+        driver.switch_to.window(first)
+        WebDriverWait(driver, 30).until(lambda d: text("notices") == "")
+
+
+KEY_EVENTS = """
+    window.keys = [];  // each keydown the page saw, and whether it kept the browser from acting on it
+    window.addEventListener("keydown", (e) => window.keys.push([e.key, e.defaultPrevented]));
+"""
+
+
+@needs_chromium
+def test_label_app_keys_with_modifiers_are_the_browsers_in_a_headless_browser(tmp_path):
+    """Ctrl+=, Ctrl+S, Alt+←, Shift+← neither answer nor are kept from the browser; only keys without a modifier
+    answer, a letter with Caps Lock too; Enter and Space on a focused answer button answer it, once."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (4,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 4" and answers_enabled(d))
+        driver.execute_script(KEY_EVENTS)
+        for modifier, key in [(Keys.CONTROL, "="), (Keys.CONTROL, "s"), (Keys.ALT, Keys.ARROW_LEFT),
+                              (Keys.SHIFT, Keys.ARROW_LEFT), (Keys.CONTROL, Keys.BACKSPACE)]:
+            ActionChains(driver).key_down(modifier).send_keys(key).key_up(modifier).perform()
+        seen = driver.execute_script("return window.keys")
+        assert [prevented for key, prevented in seen if key not in ("Control", "Alt", "Shift")] == [False] * 5, seen
+        assert text() == "round 0: query 1 of 4" and stored(driver) == {}
+        # s with Caps Lock on: the key "S" without Shift
+        caps = {"key": "S", "code": "KeyS", "text": "S", "windowsVirtualKeyCode": 83, "nativeVirtualKeyCode": 83}
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyDown", **caps})
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyUp", **caps})
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: query 2 of 4")
+        for position, (button, key) in enumerate([("answer-right", Keys.ENTER), ("answer-left", Keys.SPACE)], 3):
+            WebDriverWait(driver, 60).until(answers_enabled)
+            driver.find_element(By.ID, button).send_keys(key)  # focuses the button, then presses the key
+            WebDriverWait(driver, 30).until(lambda d: text() == f"round 0: query {position} of 4")
+        assert list(stored(driver).values()) == [["skip", 1, 0]]
+        # Enter held on a focused button: one answer
+        WebDriverWait(driver, 60).until(answers_enabled)
+        driver.execute_script("document.getElementById('answer-equal').focus()")
+        enter = {"key": "Enter", "code": "Enter", "text": "\r", "windowsVirtualKeyCode": 13, "nativeVirtualKeyCode": 13}
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyDown", **enter})
+        for _ in range(30):
+            driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyDown", "autoRepeat": True, **enter})
+        driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyUp", **enter})
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: all 4 answered")
+        assert list(stored(driver).values()) == [["skip", 1, 0, 0.5]]
+
+
+@needs_chromium
+def test_label_app_page_words_in_a_headless_browser(tmp_path):
+    """One answer kept is one answer "is back"; the question is asked only while a query is shown."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,), teacher={})
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        question = driver.find_element(By.TAG_NAME, "h2")
+        answer_queries(driver, [Keys.ARROW_LEFT], first=1, n=2)
+        assert question.is_displayed()
+        driver.refresh()
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 2 of 2")
+        assert text("message") == "your 1 answer to round 0, kept in this tab, is back"
+        answer_round(driver, [Keys.ARROW_RIGHT])
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        write_teacher(run, phase="finished", round=None, labelled=2, step=1500)
+        WebDriverWait(driver, 30).until(lambda d: text() == "the run has finished: 2 labels in 1 rounds")
+        assert not driver.find_element(By.TAG_NAME, "h2").is_displayed()
+
+
+@needs_chromium
+def test_label_app_new_queries_for_the_round_on_the_page_in_a_headless_browser(tmp_path):
+    """A run folder used again while a round is on the page: the page drops the answers to the old queries, says so,
+    and shows the new queries' clips."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        answer_queries(driver, [Keys.ARROW_LEFT], first=1)
+        write_queries(run, 0, 3, right=-0.5)
+        digest = get_state(address)["queries_digest"]
+        WebDriverWait(driver, 30).until(lambda d: text("message") == (
+            "round 0's queries have changed (a new run in the folder ext?): your 1 answer to it was not used"))
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 3" and answers_enabled(d))
+        assert driver.find_element(By.ID, "right").get_attribute("src").endswith(f"/clip/0/0/1.gif?queries={digest}")
+        assert stored(driver) == {}
