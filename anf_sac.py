@@ -1,12 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SAC on the true reward in an Extremely Noisy Environment: the oracle of the PbRL scripts.
+"""ANF-SAC (docs/anf_sac.md): the SAC below with sparse input layers rewired by RigL (ANF PATCH).
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018): exactly the SAC inside
-`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix; Muslimani et al.,
-AAMAS 2025), but the replay buffer stores the env's reward, not a learned one. It is `pebble.py`
-minus preference learning: `diff sac.py pebble.py` shows only PEBBLE (reward ensemble, teacher,
-queries, preference buffer, episode store, state-entropy pre-training, feedback rounds, relabelling,
-critic reset). The loop, one iteration per env step:
+SAC: Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside
+`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix), but the replay
+buffer stores the env's reward, not a learned one: `diff sac.py pebble.py` shows only PEBBLE. The
+loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then one SAC update per step on the true reward.
@@ -24,13 +24,16 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
 # ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent: ANF (Grooten et al.,
-# "Automatic Noise Filtering with Dynamic Sparse Training in Deep RL", AAMAS 2023) with the agent
-# half of the R2N patch (`diff pebble.py r2n_pebble.py`) unchanged, minus its reward half. Actor, Q1
-# and Q2 keep 20% of their input-layer weights (independent random masks). Every 1000 SAC optimiser
-# steps RigL drops the 5% smallest active weights and grows as many where the dense gradient is
-# largest (as R2N does "following ANF"; ANF's public code regrows at random, like SET). The agent
-# rewires onto task-relevant features. Masked weights, gradients and Adam moments stay 0; grown ones
-# start at 0, moments too. Target critics: dense Polyak copies. `diff sac.py anf_sac.py` shows it.
+# "Automatic Noise Filtering with Dynamic Sparse Training in Deep Reinforcement Learning", AAMAS
+# 2023; code: https://github.com/bramgrooten/automatic-noise-filtering) with the agent half of the
+# R2N patch (`diff pebble.py r2n_pebble.py`) unchanged, minus its reward half. Actor, Q1 and Q2
+# keep 20% of their input-layer weights (independent random masks). Every 1000 SAC optimiser steps
+# RigL drops the 5% smallest active weights and grows as many where the dense gradient is largest.
+# The R2N paper contradicts itself here: its table gives RigL for ANF-SAC, its text says ANF is
+# based on SET; ANF's public code regrows at random, as SET does. Masked weights, gradients and
+# Adam moments stay 0; grown ones start at 0, moments too. Target critics: dense Polyak copies.
+# `--agent-sparsity 0` keeps dense layers but still draws the masks, so it is not sac.py's run for
+# a seed. `diff sac.py anf_sac.py` shows the patch.
 import dataclasses
 import importlib.util
 import math

@@ -1,9 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""PEBBLE, in an Extremely Noisy Environment: PbRL with unsupervised pre-training and relabelling.
+"""DropConnect-PEBBLE (docs/dropconnect_pebble.md): the PEBBLE below with DropConnect (its PATCH).
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per env step:
+PEBBLE (docs/pebble.md), PbRL with unsupervised pre-training and relabelling: Lee, Smith & Abbeel,
+"PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
+Unsupervised Pre-training" (ICML 2021), with the R2N paper's appendix defaults. The loop, one
+iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
@@ -31,9 +34,11 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 # ICML 2013), simplified as is common: in each reward-training forward pass, every input weight of
 # each member is zeroed w.p. `dropconnect_p` (0.2). Masks: Bernoulli(1 - p), fresh per member and
 # pass, shared by the minibatch; kept weights scale by 1/(1 - p) (inverted scaling). Biases, hidden
-# and output layers are untouched. Relabelling, the per-step reward and query scoring use the full
-# weights. Early stopping's accuracy uses the loss's dropped-out forwards. Actor and critics are
-# dense. `sparse/reward{e}/*` log input-layer connectivity like R2N's (|w| > 1e-3: a connection).
+# and output layers are untouched: a deviation, as the paper describes DropConnect on a model's
+# weights, not on its input layer alone (where R2N's reward sparsity acts). Relabelling, the
+# per-step reward and query scoring use the full weights. Early stopping's accuracy uses the loss's
+# dropped-out forwards. Actor and critics are dense. `sparse/reward{e}/*` log input-layer
+# connectivity like R2N's (|w| > 1e-3: a connection).
 import dataclasses
 import hashlib
 import importlib.util

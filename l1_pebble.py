@@ -1,9 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""PEBBLE, in an Extremely Noisy Environment: PbRL with unsupervised pre-training and relabelling.
+"""L1-PEBBLE (docs/l1_pebble.md): the PEBBLE below plus an L1 penalty on reward inputs (L1 PATCH).
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per env step:
+PEBBLE (docs/pebble.md), PbRL with unsupervised pre-training and relabelling: Lee, Smith & Abbeel,
+"PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
+Unsupervised Pre-training" (ICML 2021), with the R2N paper's appendix defaults. The loop, one
+iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
@@ -30,7 +33,8 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 # input-layer weights (the R2N paper's L1 baseline). Each member's Bradley-Terry loss gets
 # `l1_lambda * sum|w|` over its input-layer weights (biases excluded; lambda 0.01; a sum, not a
 # mean). It pushes reward models to drop input features without a mask. Hidden and output layers,
-# actor and critics are not regularised. `pbrl/reward_loss` is the Bradley-Terry loss alone.
+# actor and critics are not regularised: a deviation, as the paper puts L1 on the model's weights
+# (the input layer is where R2N's reward sparsity acts). `pbrl/reward_loss`: Bradley-Terry alone.
 # `sparse/reward{e}/*` log reward input-layer connectivity like R2N's (|w| > 1e-3: a connection).
 import dataclasses
 import hashlib

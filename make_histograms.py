@@ -1,11 +1,15 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""Real-feature histograms for `--noise-type imitate`, from deterministic rollouts of a noise-free SAC policy.
+"""Real-feature histograms for `--noise-type imitate` (docs/make_histograms.md), from a noise-free SAC.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-The R2N paper's imitating noise (after ANF, Grooten et al., AAMAS 2023): noise feature i draws from the histogram of
-real feature i mod D_obs. This command makes that histogram file. It loads a checkpoint saved by `sac.py` trained with
-`--noise 0` (`runs/{run_name}/sac.cleanrl_model`), rebuilds the actor with `sac.Actor`, runs the deterministic policy
-tanh(mean) on the noise-free task and writes `ene.build_histograms(observations, --output)`: `bin_edges (D_obs, 101)`
-and `probs (D_obs, 100)`, 100 equal-width bins over each feature's [min, max].
+The R2N paper's imitating noise (after ANF, Grooten et al., AAMAS 2023): noise feature i draws from
+the histogram of real feature i mod D_obs. This command makes that histogram file from deterministic
+rollouts of a noise-free SAC policy. It loads a checkpoint saved by `sac.py` trained with `--noise 0`
+(`runs/{run_name}/sac.cleanrl_model`), rebuilds the actor with `sac.Actor`, runs the deterministic
+policy tanh(mean) on the noise-free task and writes `ene.build_histograms(observations, --output)`:
+`bin_edges (D_obs, 101)` and `probs (D_obs, 100)`, 100 equal-width bins over each feature's [min, max]
+(the paper gives no bin count).
 
 Choices where the paper is silent: the observations are those the policy acts on (the first of each episode
 included, the last one after truncation not), `--num-observations` of them exactly, from consecutive

@@ -1,9 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""PEBBLE, in an Extremely Noisy Environment: PbRL with unsupervised pre-training and relabelling.
+"""A baseline of the R2N paper in an Extremely Noisy Environment: the PbRL method below, no R2N.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per env step:
+PEBBLE (docs/pebble.md), PbRL with unsupervised pre-training and relabelling: Lee, Smith & Abbeel,
+"PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
+Unsupervised Pre-training" (ICML 2021), with the R2N paper's appendix defaults. The loop, one
+iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).

@@ -1,10 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SURF on PEBBLE in an Extremely Noisy Environment: semi-supervised rewards, temporal cropping.
+"""R2N on the PbRL method below (docs/r2n_pebble.md, r2n_surf.md, r2n_rune.md): sparse input layers.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults, plus SURF's reward learning (last paragraphs).
-The loop, one iteration per env step:
+SURF on PEBBLE (docs/surf.md), semi-supervised rewards and temporal cropping: PEBBLE (Lee, Smith &
+Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience
+and Unsupervised Pre-training", ICML 2021) with the R2N paper's appendix defaults, plus SURF's
+reward learning (last paragraphs). The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
@@ -26,8 +28,12 @@ crop length per pair in segment_size +- surf_crop, independent start offsets per
 stored window), plus `surf_lambda` x the loss on `surf_mu * reward_batch_size` cropped unlabelled
 pairs. Their pseudo-label is the member's own preference on the uncropped central steps, kept where
 its probability >= `surf_tau`; averaged over the whole unlabelled minibatch (FixMatch style). A
-round trains ceil(reward_epochs * labels / reward_batch_size) steps, no early stop. Defaults: tau
-0.99 and mu 1 (the reference's README and config disagree: 0.95/0.99, 1/4), ratio 10, crop 5.
+round trains ceil(reward_epochs * labels / reward_batch_size) steps, no early stop: SURF's code's
+count of the paper's 50 epochs. A pass's last minibatch may be short, so it makes at most 50 passes
+over the labels: ceil(50 * labels / 128) up to 128 labels, 50 at multiples of 128, about 26 just
+past 128 (a deviation from the paper's word; `pbrl/reward_epochs` logs the passes).
+Defaults: the paper's tau 0.99, lambda 1, ratio 10, crop 5; mu 1, not in the paper, is SURF's
+config's (its README's runs use mu 4 and tau 0.99, its config tau 0.95).
 
 Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
 B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
@@ -45,13 +51,13 @@ labelled pairs, last pass over them; pseudo-label rate: whole round.
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 
-R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
-Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
-and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%
-of their weights. Periodically, RigL drops the smallest active weights and regrows as many where the
-dense gradient is largest. Reward members drop 0.2 per 100 reward optimiser steps (whole run); actor
-and critics 0.05 every 1000 SAC steps. The reset critic gets a fresh mask. Masked weights, their
-gradients and Adam moments stay 0; grown ones start at 0. Target critics: dense Polyak copies.
+R2N, the patch `diff pebble.py r2n_pebble.py` (it also turns surf.py and rune.py into r2n_surf.py
+and r2n_rune.py): the input layers of the reward members, the actor and the critics keep 20% of
+their weights (random masks; the reset critic gets a fresh one). Masked weights, their gradients and
+Adam moments stay 0; target critics: dense Polyak copies. `--no-sparse-reward`, `--no-sparse-agent`:
+dense layers, but their masks are still drawn, so a seed does not give the base script's run.
+Topology updates: reward models 0.2 per 100 reward steps (whole run), agent 0.05 per 1000 SAC steps:
+drop the smallest active weights; grow as many, at 0, where the dense gradient is largest (RigL).
 """
 import dataclasses
 import hashlib

@@ -1,10 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""RUNE on PEBBLE, in an Extremely Noisy Environment: an exploration bonus from reward uncertainty.
+"""A baseline of the R2N paper in an Extremely Noisy Environment: the PbRL method below, no R2N.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults, plus RUNE's exploration bonus (last paragraphs).
-The loop, one iteration per env step:
+RUNE on PEBBLE (docs/rune.md), an exploration bonus from reward uncertainty: PEBBLE (Lee, Smith &
+Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience
+and Unsupervised Pre-training", ICML 2021) with the R2N paper's appendix defaults, plus RUNE's
+exploration bonus (last paragraphs). The loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
@@ -21,7 +23,8 @@ Reinforcement Learning", ICLR 2022) adds an exploration bonus; `diff pebble.py r
 Beside the ensemble mean r(s, a), the replay buffer stores the population std sigma(s, a) of the
 members' predictions, computed per new transition and at every relabel. The critic target uses r +
 beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05,
-`--rune-beta-decay` 1e-5: the reference's values; it calls this geometric decay "linear decay").
+`--rune-beta-decay` 1e-5: the paper's table). The paper calls the schedule "linear decay"; this is
+the geometric decay that RUNE's code computes under that name (a deviation from the paper's word).
 
 Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
 B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back

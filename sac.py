@@ -1,12 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""SAC on the true reward in an Extremely Noisy Environment: the oracle of the PbRL scripts.
+"""SAC on the true reward in an Extremely Noisy Environment, the PbRL scripts' oracle: docs/sac.md.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018): exactly the SAC inside
-`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix; Muslimani et al.,
-AAMAS 2025), but the replay buffer stores the env's reward, not a learned one. It is `pebble.py`
-minus preference learning: `diff sac.py pebble.py` shows only PEBBLE (reward ensemble, teacher,
-queries, preference buffer, episode store, state-entropy pre-training, feedback rounds, relabelling,
-critic reset). The loop, one iteration per env step:
+SAC: Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside
+`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix), but the replay
+buffer stores the env's reward, not a learned one: `diff sac.py pebble.py` shows only PEBBLE. The
+loop, one iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then one SAC update per step on the true reward.

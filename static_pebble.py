@@ -1,9 +1,12 @@
 # docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
-"""PEBBLE, in an Extremely Noisy Environment: PbRL with unsupervised pre-training and relabelling.
+"""Static-PEBBLE (docs/static_pebble.md): r2n_pebble.py whose random masks never change.
+R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
+Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 
-Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling
-Experience and Unsupervised Pre-training" (ICML 2021), as the R2N paper uses it (Muslimani et al.,
-AAMAS 2025), with that paper's appendix defaults. The loop, one iteration per env step:
+PEBBLE (docs/pebble.md), PbRL with unsupervised pre-training and relabelling: Lee, Smith & Abbeel,
+"PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience and
+Unsupervised Pre-training" (ICML 2021), with the R2N paper's appendix defaults. The loop, one
+iteration per env step:
 
 1. `global_step < learning_starts`: uniform random actions, no learning.
 2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
@@ -26,15 +29,11 @@ ensemble; the next relabel overwrites it.
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 
-Static-PEBBLE, the R2N paper's static sparse training baseline: r2n_pebble.py whose random masks
-never change (no topology update; `diff r2n_pebble.py static_pebble.py`). What it changes:
-R2N on the method above: Muslimani et al., "Boosting Robustness in Preference-Based RL with Dynamic
-Sparsity" (AAMAS 2025). It is its base script plus the R2N patch (`diff`), which also turns surf.py
-and rune.py into r2n_surf.py and r2n_rune.py. Input layers (reward members, actor, critics) keep 20%
-of their weights. Periodically, RigL drops the smallest active weights and regrows as many where the
-dense gradient is largest. Reward members drop 0.2 per 100 reward optimiser steps (whole run); actor
-and critics 0.05 every 1000 SAC steps. The reset critic gets a fresh mask. Masked weights, their
-gradients and Adam moments stay 0; grown ones start at 0. Target critics: dense Polyak copies.
+R2N, the patch `diff pebble.py r2n_pebble.py` (it also turns surf.py and rune.py into r2n_surf.py
+and r2n_rune.py): the input layers of the reward members, the actor and the critics keep 20% of
+their weights (random masks; the reset critic gets a fresh one). Masked weights, their gradients and
+Adam moments stay 0; target critics: dense Polyak copies. `--no-sparse-reward`, `--no-sparse-agent`:
+dense layers, but their masks are still drawn, so a seed does not give the base script's run.
 """
 import dataclasses
 import hashlib
