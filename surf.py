@@ -1578,9 +1578,12 @@ class ExternalTeacher:
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
-                with open(path, "rb") as f:
-                    content = f.read()
-                problem = labels_problem(content, n)
+                try:
+                    with open(path, "rb") as f:
+                        content = f.read()
+                    problem = labels_problem(content, n)
+                except IsADirectoryError:  # one line, as for a malformed file: the wait goes on
+                    problem = "a folder, not a file: move it away"
                 if problem is None:
                     break
                 problem = f"labels: {path}: {problem}; waiting for a corrected file"
@@ -1623,7 +1626,7 @@ def labels_problem(content: bytes, n: int) -> Optional[str]:
 
 
 def file_sha256(path: str) -> Optional[str]:
-    if not os.path.exists(path):
+    if not os.path.isfile(path):  # a folder in the file's place reads as a missing file
         return None
     with open(path, "rb") as f:
         return hashlib.sha256(f.read()).hexdigest()

@@ -214,3 +214,37 @@ def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_l
     np.testing.assert_array_equal(pebble.read_preferences(f"{folder}/0.npz")["labels"], queries.labels[3:5])
     with pytest.raises(ValueError, match="no preferences files in"):
         pebble.read_preferences(str(tmp_path))
+
+
+def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(tmp_path, capsys):
+    """A folder at `labels/R.json` is a malformed labels file like any other: one line, the page's notice, and the
+    run waits for a file instead of failing with a traceback. A resume that finds a folder where a labels file was
+    refuses it with its one-line message."""
+    import torch
+
+    args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
+    teacher = pebble.ExternalTeacher(str(tmp_path), args, [], poll_seconds=0.02)
+    folder = tmp_path / "labels" / "0.json"
+    folder.mkdir(parents=True)
+
+    def answer_once_noticed():
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            if (tmp_path / "teacher.json").exists() and "folder" in (status(tmp_path)["message"] or ""):
+                folder.rmdir()
+                (tmp_path / "labels" / "1.tmp").write_text("[1, 0]")
+                os.replace(tmp_path / "labels" / "1.tmp", folder)
+                return
+            time.sleep(0.02)
+
+    helper = threading.Thread(target=answer_once_noticed)
+    helper.start()
+    keep, labels, _, _ = teacher.ask(0, "cartpole-swingup", 5, torch.zeros(2, 2, 3, 6), torch.zeros(2, 2, 3),
+                                     np.zeros((2, 2, 3, 4)), step=0, asked=0, labelled=0)
+    helper.join()
+    assert keep.tolist() == [True, True] and labels.tolist() == [1.0, 0.0]
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("labels:")]
+    assert lines == [f"labels: {folder}: a folder, not a file: move it away; waiting for a corrected file"]
+    (tmp_path / "labels" / "1.json").mkdir()
+    with pytest.raises(ValueError, match=r"1.json is not the labels file this run trained on"):
+        pebble.check_labels_unchanged(str(tmp_path), {"label_sha256": ["", "0" * 64]})
