@@ -194,6 +194,22 @@ def test_help_documents_every_flag(script, tmp_path):
             assert flag in result.stdout
 
 
+ALL_SCRIPTS = ["sac.py", "anf_sac.py", "pebble.py", "r2n_pebble.py", "set_pebble.py", "static_pebble.py", "l1_pebble.py",
+               "dropconnect_pebble.py", "surf.py", "r2n_surf.py", "rune.py", "r2n_rune.py"]
+
+
+def test_every_script_stores_its_noise_unless_told_to_redraw_it():
+    """The ENE's default is an environment's: a stored observation keeps its noise. `--noise-resample` gives ANF's
+    code's variant, in every one of the 12 scripts (the numerics tests pin what each variant computes)."""
+    import tyro
+
+    sys.path.insert(0, ROOT)
+    for script in ALL_SCRIPTS:
+        module = importlib.import_module(script[:-3])
+        assert tyro.cli(module.Args, args=[]).noise_resample is False, script
+        assert tyro.cli(module.Args, args=["--noise-resample"]).noise_resample is True, script
+
+
 @pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb is installed")
 def test_track_without_wandb_says_how_to_install(tmp_path):
     result = run_script("pebble.py", TINY + ["--track"], tmp_path, check=False)
