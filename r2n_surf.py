@@ -417,7 +417,7 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         mean, _ = actor(torch.as_tensor(obs, device=device))
-        torch.randn_like(mean)  # get_action's unused draw: training's random stream stays where it was
+        torch.randn_like(mean)  # get_action's unused draw: keeps training's random stream
         actions = torch.tanh(mean).cpu().numpy()
         # MuJoCo would raise on them: a NaN return, which stops the run
         if not np.isfinite(actions).all():
@@ -877,7 +877,9 @@ def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) ->
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     # foreach: the multi-tensor Adam, bitwise the CPU's default single-tensor one and faster
-    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr, foreach=True)
+    q_optimizer = optim.Adam(
+        list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr, foreach=True
+    )
     agent_sparsity = args.agent_sparsity if args.sparse_agent else 0.0
     q_optimizer = SparseOptimizer(q_optimizer, {"qf1": qf1.net[0].weight, "qf2": qf2.net[0].weight},
                                   agent_sparsity, args.agent_drop_fraction, args.agent_topology_period)

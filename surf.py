@@ -382,7 +382,7 @@ def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
     while running.any():
         mean, _ = actor(torch.as_tensor(obs, device=device))
-        torch.randn_like(mean)  # get_action's unused draw: training's random stream stays where it was
+        torch.randn_like(mean)  # get_action's unused draw: keeps training's random stream
         actions = torch.tanh(mean).cpu().numpy()
         # MuJoCo would raise on them: a NaN return, which stops the run
         if not np.isfinite(actions).all():
@@ -744,7 +744,9 @@ def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) ->
     qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     # foreach: the multi-tensor Adam, bitwise the CPU's default single-tensor one and faster
-    q_optimizer = optim.Adam(list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr, foreach=True)
+    q_optimizer = optim.Adam(
+        list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr, foreach=True
+    )
     qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
     qf1_target.load_state_dict(qf1.state_dict())
