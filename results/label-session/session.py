@@ -3,33 +3,59 @@ played by a script in Debian's headless Chromium, against a real `--teacher exte
 
     python results/label-session/session.py --minutes 15 --out /tmp/label-session
 
-The run (pebble.py on cartpole-swingup, small networks, 10 queries a round) asks round after round; the script answers
-each query with a random key once the page takes answers, with the keys a person also presses by mistake or on
-purpose: undo, a reload mid-round, Ctrl+= (zoom: no answer), Caps Lock's S. Every few minutes it opens a second tab
-of the same browser, which must show at once that the first tab is answering the round, then closes it. At the end it
-checks that every labels file holds exactly the answers the script gave for its round, and writes `summary.json`:
-rounds, answers, the app's memory (RSS, each minute: the clip cache is bounded), the slowest `/api/state`, the
-notices seen, and any traceback in the app's or the run's output (there must be none).
+The run (pebble.py on cartpole-swingup, small networks; by default a round every 300 steps, 3 queries a round,
+segments of 10 steps: on the busy 2-core machine without a GPU where it ran, the app took 6-9 s to render a clip
+of 20 steps, and these settings gave a round every ~25 s, 32 in 15 minutes) asks round after round; the script
+answers each query with a random key once the page takes answers, with the keys a person also presses by
+mistake or on purpose: undo, a reload mid-round (the page must bring this tab's answers back), Ctrl+= (zoom: no
+answer), Caps Lock's S. Each answer is recorded with the clips the page showed for it (their URLs carry the digest
+of the queries they render). During the session:
+
+- a second tab of the same browser stays open for `--second-tab-seconds` while the first answers: it must show at
+  once that the first tab answers the round, with the first tab's answers, and the first tab must show the second;
+  every few minutes a second tab is also opened for a moment;
+- the run folder's queries are replaced once (`--replace-at`, a fraction of the session): while a round is on the
+  page with some answers given, its `queries/R.npz` is replaced (temp file, then os.replace) by other queries of
+  the same number (an earlier round's, the two segments swapped and the order reversed: queries the app has never
+  rendered). The page must drop the answers it had, say so, and show clips of the new queries (the digest in the
+  clips' URLs changes; the old digest's clip URL gets 404); the round's labels must then be the answers given after
+  the replacement;
+- a reload is forced once soon after the replacement (besides the random ones).
+
+At the end it checks that every labels file holds exactly the answers the script gave for its round, each given
+while the page showed the clips of that round's queries as they are in the run folder at the end, and writes
+`summary.json` (every check, and `ok`: all of them held) and `session.log` (what the script did, when): rounds,
+answers, the app's memory (RSS every 10 s, against `--rss-bound-mb`: the clip cache is bounded by
+`--clip-cache-mb`), the slowest `/api/state`, the notices seen, and any traceback in the app's or the run's output
+(there must be none). The exit code is 0 when every check held.
 """
 import argparse
+import hashlib
 import json
 import os
 import random
 import subprocess
 import sys
 import time
+import traceback
+import urllib.error
 import urllib.request
+from urllib.parse import parse_qs, urlsplit
+
+import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 from test_labelling import chrome, free_port  # noqa: E402  (Debian's chromium, headless, as the tests drive it)
 
 RUN = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "200000", "--learning-starts", "200",
-       "--unsup-steps", "300", "--feedback-freq", "500", "--episode-length", "100", "--eval-freq", "5000",
-       "--eval-episodes", "2", "--segment-size", "20", "--max-feedback", "5000", "--queries-per-round", "10",
+       "--unsup-steps", "300", "--episode-length", "100", "--eval-freq", "5000",
+       "--eval-episodes", "2", "--max-feedback", "5000",
        "--hidden-dim", "32", "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-layers", "2",
        "--reward-epochs", "20", "--teacher", "external", "--run-name", "session"]
 KEYS = {"\ue012": 0, "\ue014": 1, "=": 0.5, "s": "skip"}  # selenium's ← and →, then = and s
+SYMBOLS = {0: "\u2190", 1: "\u2192", 0.5: "=", "skip": "s"}  # an answer as the page's notices write it
+OTHER_TAB = "another tab of this browser is answering round"
 
 
 def rss_mb(pid: int) -> float:
@@ -37,11 +63,59 @@ def rss_mb(pid: int) -> float:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
 
 
+def digest_of(physics: np.ndarray, env_id: str) -> str:
+    """The digest of a queries file as docs/labelling.md describes it (of the task and the physics states): the
+    page's clip URLs carry it."""
+    return hashlib.sha256(f"{env_id} {physics.dtype} {physics.shape}".encode() + physics.tobytes()).hexdigest()[:16]
+
+
+def file_digest(path: str) -> str:
+    with np.load(path) as data:
+        return digest_of(data["physics"], str(data["env_id"]))
+
+
+def count(k: int) -> str:
+    return f"{k} answer{'' if k == 1 else 's'}"
+
+
+def replace_queries(run_dir: str, round_index: int) -> dict:
+    """Replace the round's queries file, atomically, by other queries of the same number: the latest earlier round
+    of the same shape, its two segments swapped and its order reversed (never rendered by the app); without one,
+    this round's own, so changed."""
+    path = os.path.join(run_dir, "queries", f"{round_index}.npz")
+    with np.load(path) as data:
+        old = {name: data[name] for name in data.files}
+    donor = None
+    for r in range(round_index - 1, -1, -1):
+        with np.load(os.path.join(run_dir, "queries", f"{r}.npz")) as data:
+            if data["physics"].shape == old["physics"].shape:
+                donor, arrays = r, {name: data[name] for name in data.files}
+                break
+    if donor is None:
+        arrays = old
+    new = {name: (value[::-1, ::-1].copy() if value.ndim >= 2 and len(value) == len(old["physics"]) else value)
+           for name, value in arrays.items()}  # obs, actions, physics, true_rewards: (n, 2, ...)
+    tmp = f"{path}.session-tmp"
+    with open(tmp, "wb") as f:
+        np.savez(f, **new)
+    os.replace(tmp, path)
+    return {"donor_round": donor, "old_digest": digest_of(old["physics"], str(old["env_id"])),
+            "new_digest": digest_of(new["physics"], str(new["env_id"])), "n": len(new["physics"])}
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--minutes", type=float, default=15)
     parser.add_argument("--out", default="/tmp/label-session")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--queries-per-round", type=int, default=3, help="the run's")
+    parser.add_argument("--segment-size", type=int, default=10, help="the run's: frames a clip")
+    parser.add_argument("--feedback-freq", type=int, default=300, help="the run's: steps between rounds")
+    parser.add_argument("--clip-cache-mb", type=float, default=256, help="the app's --clip-cache-mb")
+    parser.add_argument("--rss-bound-mb", type=float, default=1000, help="the app's RSS must stay below this")
+    parser.add_argument("--second-tab-at", type=float, default=0.25, help="fraction of the session")
+    parser.add_argument("--second-tab-seconds", type=float, default=120)
+    parser.add_argument("--replace-at", type=float, default=0.5, help="fraction of the session")
     args = parser.parse_args()
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
@@ -54,20 +128,87 @@ def main():
         sys.exit(f"session.py: error: --out {args.out} holds an earlier session: choose another folder")
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     run_log, app_log = (open(os.path.join(args.out, name), "w") for name in ("run.log", "app.log"))
-    run = subprocess.Popen([sys.executable, os.path.join(ROOT, "pebble.py"), *RUN], cwd=args.out, env=env,
-                           stdout=run_log, stderr=subprocess.STDOUT)
+    session_log = open(os.path.join(args.out, "session.log"), "w")
+    began = time.time()
+
+    def log(line: str):
+        line = f"[{time.time() - began:7.1f} s] {line}"
+        print(line, flush=True)
+        print(line, file=session_log, flush=True)
+
+    command = [sys.executable, os.path.join(ROOT, "pebble.py"), *RUN, "--queries-per-round",
+               str(args.queries_per_round), "--segment-size", str(args.segment_size), "--feedback-freq",
+               str(args.feedback_freq)]
+    log("run: " + " ".join(command[1:]))
+    run = subprocess.Popen(command, cwd=args.out, env=env, stdout=run_log, stderr=subprocess.STDOUT)
     while not os.path.isdir(run_dir):
         assert run.poll() is None, "the run ended at its start: see run.log"
         time.sleep(0.2)
     port = free_port()
-    app = subprocess.Popen([sys.executable, os.path.join(ROOT, "label_app.py"), run_dir, "--port", str(port)],
-                           env=env, stdout=app_log, stderr=subprocess.STDOUT)
+    command = [sys.executable, os.path.join(ROOT, "label_app.py"), run_dir, "--port", str(port),
+               "--clip-cache-mb", str(args.clip_cache_mb)]
+    log("app: " + " ".join(command[1:]))
+    app = subprocess.Popen(command, env=env, stdout=app_log, stderr=subprocess.STDOUT)
     address = f"http://127.0.0.1:{port}"
     driver = chrome()
-    given, summary = {}, {"rss_mb": [], "slowest_state_s": 0.0, "notices": set(), "reloads": 0, "undos": 0,
-                          "second_tabs": 0, "second_tab_saw_first": 0}
-    text = lambda element="progress": driver.find_element(By.ID, element).text  # noqa: E731
-    end, next_minute, next_tab = time.time() + 60 * args.minutes, time.time(), time.time() + 60
+    given = {}  # round -> the answers the script gave, in order (less those undone, or dropped by a replacement)
+    shown = {}  # round -> the digest of the clips shown for each of those answers
+    summary = {"minutes": args.minutes, "queries_per_round": args.queries_per_round,
+               "clip_cache_mb": args.clip_cache_mb, "rss_bound_mb": args.rss_bound_mb, "rss_mb_each_minute": [],
+               "rss_peak_mb": 0.0, "rss_baseline_mb": None, "slowest_state_s": 0.0, "notices": set(),
+               "messages": set(), "reloads": 0, "reloads_restored": 0, "undos": 0, "ctrl_equals": 0, "answers": 0,
+               "second_tabs": 0, "second_tab_saw_first": 0, "sustained_second_tab": None, "replacement": None}
+    # read in one script each: the page replaces its notices at every render (a found element can go stale)
+    text = lambda element="progress": driver.execute_script(  # noqa: E731
+        "return document.getElementById(arguments[0]).textContent", element)
+    notices = lambda: driver.execute_script(  # noqa: E731
+        "return [...document.querySelectorAll('#notices p')].map((p) => p.textContent)")
+    body = lambda: driver.find_element(By.TAG_NAME, "body")  # noqa: E731
+
+    def clip_digests() -> tuple:
+        """The (round, query, side, digest) of the two clips the page shows."""
+        out = []
+        for side in ("left", "right"):
+            url = urlsplit(driver.find_element(By.ID, side).get_attribute("src"))
+            _, _, r, q, s = url.path.split("/")
+            out.append((int(r), int(q), int(s[:-4]), parse_qs(url.query)["queries"][0]))
+        return tuple(out)
+
+    def wait_until(condition, seconds: float) -> bool:
+        deadline = time.time() + seconds
+        while time.time() < deadline:
+            try:
+                if condition():
+                    return True
+            except Exception:  # noqa: BLE001  (an element replaced meanwhile: look again)
+                pass
+            time.sleep(0.1)
+        return False
+
+    def taking(round_index: int, query: int) -> bool:
+        """The page shows this query of this round, and takes answers."""
+        return (text() == f"round {round_index}: query {query + 1} of {args.queries_per_round}"
+                and driver.find_element(By.ID, "answer-left").is_enabled())
+
+    clip_bytes = {}  # clip URL -> its size, as the browser fetched it (resource timing): the clips rendered
+
+    def collect_clips():
+        for url, size in driver.execute_script(
+                "const clips = performance.getEntriesByType('resource').filter((e) => e.name.includes('/clip/'))"
+                ".map((e) => [e.name, e.encodedBodySize]); performance.clearResourceTimings(); return clips"):
+            if size:
+                clip_bytes[urlsplit(url)._replace(netloc="").geturl()] = size
+
+    def sample_memory():
+        rss = round(rss_mb(app.pid), 1)
+        summary["rss_peak_mb"] = max(summary["rss_peak_mb"], rss)
+        return rss
+
+    end = began + 60 * args.minutes
+    next_minute, next_sample, next_tab = time.time(), time.time(), time.time() + 90
+    tab_at, replace_at = began + 60 * args.minutes * args.second_tab_at, began + 60 * args.minutes * args.replace_at
+    second = None  # the sustained second tab: {"handle", "until", ...}
+    force_reload, last_round = False, None
     try:
         for _ in range(600):  # the app starts (imports MuJoCo)
             try:
@@ -75,76 +216,221 @@ def main():
                 break
             except OSError:
                 time.sleep(0.2)
+        summary["rss_baseline_mb"] = sample_memory()
+        log(f"app up: RSS {summary['rss_baseline_mb']} MB before any clip")
         driver.get(address)
         main_tab = driver.current_window_handle
         while time.time() < end:
-            if time.time() >= next_minute:  # the app's memory, and how fast it answers the poll
-                next_minute += 60
-                summary["rss_mb"].append(round(rss_mb(app.pid), 1))
+            if time.time() >= next_sample:  # the app's memory every 10 s, and how fast it answers the poll
+                next_sample += 10
+                rss = sample_memory()
+                collect_clips()
+                if time.time() >= next_minute:
+                    next_minute += 60
+                    summary["rss_mb_each_minute"].append(rss)
+                    log(f"app RSS {rss} MB (peak {summary['rss_peak_mb']} MB); rounds answered: "
+                        f"{sum(1 for r in given if os.path.exists(os.path.join(run_dir, 'labels', f'{r}.json')))}")
                 started = time.time()
                 urllib.request.urlopen(f"{address}/api/state", timeout=30).read()
                 summary["slowest_state_s"] = max(summary["slowest_state_s"], round(time.time() - started, 3))
-            summary["notices"].update(p.text for p in driver.find_elements(By.CSS_SELECTOR, "#notices p"))
+            seen = notices()
+            summary["notices"].update(seen)
+            message = text("message")
+            if message:
+                summary["messages"].add(message)
             progress = text()
             if progress.endswith("answered") and driver.find_element(By.ID, "submit").is_displayed():
-                driver.find_element(By.TAG_NAME, "body").send_keys(Keys.ENTER)
+                round_index = int(progress.split()[1].rstrip(":"))
+                body().send_keys(Keys.ENTER)
+                log(f"round {round_index}: submitted {given.get(round_index)}")
                 time.sleep(0.5)
                 continue
             if ": query " not in progress or not driver.find_element(By.ID, "answer-left").is_enabled():
                 time.sleep(0.2)  # the run trains, or the clips load
                 continue
             round_index, query = int(progress.split()[1].rstrip(":")), int(progress.split()[3]) - 1
+            if round_index != last_round:
+                last_round = round_index
+                log(f"round {round_index}: on the page ({progress})")
+            assert len(given.get(round_index, [])) == query, f"{progress}: the script gave {given.get(round_index)}"
+            if second is not None:  # the first tab shows the second, which is on the same round
+                second["samples"] += 1
+                second["first_saw_second"] += any(n.startswith(f"{OTHER_TAB} {round_index} too") for n in seen)
             roll = rng.random()
-            if time.time() >= next_tab:  # a second tab of the browser: it must see the first at once
+            if summary["replacement"] is None and time.time() >= replace_at and query >= 2 and second is None:
+                # the run folder's queries replaced while this round is on the page with `query` answers
+                before = clip_digests()
+                replaced = replace_queries(run_dir, round_index)
+                log(f"round {round_index}: queries/{round_index}.npz replaced with {query} answers given "
+                    f"({replaced}); page's clips: digest {before[0][3]}")
+                started = time.time()
+                handled = wait_until(lambda: taking(round_index, 0) and
+                                     all(c[3] == replaced["new_digest"] for c in clip_digests()), 30)
+                replaced.update(round=round_index, answers_before=list(given[round_index]),
+                                page_digest_before=before[0][3], page_noticed=handled,
+                                noticed_after_s=round(time.time() - started, 1), message=text("message"),
+                                progress=text(), page_digest_after=clip_digests()[0][3])
+                state = json.loads(urllib.request.urlopen(f"{address}/api/state", timeout=30).read())
+                replaced["state_digest"] = state["queries_digest"]
+                for name, d in (("old_clip_http", replaced["old_digest"]), ("new_clip_http", replaced["new_digest"])):
+                    try:
+                        replaced[name] = urllib.request.urlopen(
+                            f"{address}/clip/{round_index}/0/0.gif?queries={d}", timeout=60).status
+                    except urllib.error.HTTPError as e:
+                        replaced[name] = e.code
+                replaced["handled"] = bool(
+                    handled and replaced["page_digest_before"] == replaced["old_digest"]
+                    and replaced["page_digest_after"] == replaced["new_digest"] == replaced["state_digest"]
+                    and f"round {round_index}'s queries have changed" in replaced["message"]
+                    and f"your {count(query)} to it were not used" in replaced["message"]
+                    and replaced["old_clip_http"] == 404 and replaced["new_clip_http"] == 200)
+                log(f"round {round_index}: the page {'noticed' if handled else 'did NOT notice'} in "
+                    f"{replaced['noticed_after_s']} s: message {replaced['message']!r}, progress "
+                    f"{replaced['progress']!r}, clips' digest {replaced['page_digest_after']}, old clip HTTP "
+                    f"{replaced['old_clip_http']}, new clip HTTP {replaced['new_clip_http']}")
+                summary["replacement"] = replaced
+                given[round_index], shown[round_index] = [], []  # the page dropped them: the labels are what follows
+                force_reload = True
+            elif second is None and summary["sustained_second_tab"] is None and time.time() >= tab_at and query >= 1:
+                # a second tab that stays open while the first answers
+                k = query
+                driver.switch_to.new_window("tab")
+                handle = driver.current_window_handle
+                driver.get(address)
+                expected = (f"{OTHER_TAB} {round_index} too (its {count(k)} so far: "
+                            f"{' '.join(SYMBOLS[a] for a in given[round_index])})")
+                saw = wait_until(lambda: any(n.startswith(expected) for n in notices()), 15)
+                second_notices = notices()
+                driver.switch_to.window(main_tab)
+                mine = f"{OTHER_TAB} {round_index} too (no answers yet)"
+                first_saw = wait_until(lambda: any(n.startswith(mine) for n in notices()), 15)
+                second = {"handle": handle, "opened": time.time(), "round": round_index,
+                          "second_saw_first_at_once": saw, "second_notices_at_open": second_notices,
+                          "first_saw_second_at_once": first_saw, "samples": 0, "first_saw_second": 0}
+                log(f"round {round_index}: second tab opened and left open; it shows the first's {count(k)}: {saw} "
+                    f"({second_notices}); the first shows it: {first_saw}")
+            elif second is not None and time.time() >= second["opened"] + args.second_tab_seconds:
+                driver.switch_to.window(second["handle"])
+                expected = (f"{OTHER_TAB} {round_index} too (" +
+                            (f"its {count(query)} so far: {' '.join(SYMBOLS[a] for a in given[round_index])})"
+                             if query else "no answers yet)"))
+                second["second_saw_first_at_close"] = wait_until(
+                    lambda: any(n.startswith(expected) for n in notices()), 15)
+                second["second_notices_at_close"], second["second_progress_at_close"] = notices(), text()
+                driver.close()
+                driver.switch_to.window(main_tab)
+                second["first_cleared"] = wait_until(lambda: not any(OTHER_TAB in n for n in notices()), 15)
+                second["open_s"] = round(time.time() - second.pop("opened"), 1)
+                second.pop("handle")
+                second["ok"] = bool(second["second_saw_first_at_once"] and second["first_saw_second_at_once"] and
+                                    second["second_saw_first_at_close"] and second["first_cleared"] and
+                                    second["first_saw_second"] > 0)
+                log(f"round {round_index}: second tab closed after {second['open_s']} s, from round "
+                    f"{second['round']}: it showed the first's answers at close: {second['second_saw_first_at_close']} "
+                    f"({second['second_notices_at_close']}); the first showed it in {second['first_saw_second']} of "
+                    f"{second['samples']} looks; the first's notice gone after the close: {second['first_cleared']}")
+                summary["sustained_second_tab"], second = second, None
+            elif second is None and time.time() >= next_tab:  # a second tab for a moment: it sees the first at once
                 next_tab += 180
                 summary["second_tabs"] += 1
                 driver.switch_to.new_window("tab")
                 driver.get(address)
-                time.sleep(2)
-                notices = [p.text for p in driver.find_elements(By.CSS_SELECTOR, "#notices p")]
-                summary["second_tab_saw_first"] += any("another tab of this browser" in n for n in notices)
+                saw = wait_until(lambda: any(f"{OTHER_TAB} {round_index} too" in n for n in notices()), 10)
+                summary["second_tab_saw_first"] += saw
                 driver.close()
                 driver.switch_to.window(main_tab)
-            elif roll < 0.03 and query > 0:  # a reload mid-round: the answers come back
+                log(f"round {round_index}: a second tab for a moment: it showed the first: {saw}")
+            elif query > 0 and (roll < 0.03 or force_reload and query >= 2):  # a reload mid-round: answers come back
+                forced, force_reload = force_reload and query >= 2, force_reload and query < 2
                 summary["reloads"] += 1
+                collect_clips()
                 driver.refresh()
-                time.sleep(1)
+                back = wait_until(lambda: taking(round_index, query) and "are back" in text("message")
+                                  if query > 1 else taking(round_index, query) and "is back" in text("message"), 30)
+                summary["reloads_restored"] += back
+                log(f"round {round_index}: reload{' (forced, after the replacement)' if forced else ''} at query "
+                    f"{query + 1}: {text('message')!r}, back at {text()!r}: {back}")
             elif roll < 0.05:  # Ctrl+= zooms, and answers nothing
+                summary["ctrl_equals"] += 1
                 ActionChains(driver).key_down(Keys.CONTROL).send_keys("=").key_up(Keys.CONTROL).perform()
                 time.sleep(0.5)
                 assert text() == progress, "Ctrl+= answered"
             else:  # an answer (S: the s of a keyboard with Caps Lock or Shift), or undo
                 undo, key = roll < 0.10 and query > 0, rng.choice([*KEYS, "S"])
-                driver.find_element(By.TAG_NAME, "body").send_keys(Keys.BACKSPACE if undo else key)
+                if not undo:  # the clips on the page when the key is pressed: this round's, this query's
+                    clips = clip_digests()
+                    assert clips[0][:3] == (round_index, query, 0) and clips[1][:3] == (round_index, query, 1) and \
+                        clips[0][3] == clips[1][3], f"{progress}: the page shows the clips {clips}"
+                body().send_keys(Keys.BACKSPACE if undo else key)
                 if undo:
                     summary["undos"] += 1
                     given[round_index].pop()
+                    shown[round_index].pop()
                 else:
+                    summary["answers"] += 1
                     given.setdefault(round_index, []).append(KEYS.get(key, "skip"))
+                    shown.setdefault(round_index, []).append(clips[0][3])
                 deadline = time.time() + 30
                 while text() == progress and time.time() < deadline:
                     time.sleep(0.05)  # the page moves to the next query (the previous one, after undo)
                 assert text() != progress, f"{progress}: the page did not take the key"
+    except Exception as e:
+        log(f"session.py: the session failed: {type(e).__name__}: {e}\n{traceback.format_exc()}")
+        summary["failure"] = f"{type(e).__name__}: {e}"
     finally:
+        try:
+            collect_clips()
+        except Exception:  # noqa: BLE001  (the browser has gone)
+            pass
+        try:
+            summary["rss_final_mb"] = sample_memory()
+        except (OSError, StopIteration):  # the app has gone
+            summary["rss_final_mb"] = None
         driver.quit()
         app.terminate()
         run.terminate()
         app.wait(timeout=30)
         run.wait(timeout=60)
-    written = {}
-    for name in os.listdir(os.path.join(run_dir, "labels")) if os.path.isdir(os.path.join(run_dir, "labels")) else []:
+    written, digests = {}, {}
+    labels = os.path.join(run_dir, "labels")
+    for name in os.listdir(labels) if os.path.isdir(labels) else []:
         if name.endswith(".json"):
-            with open(os.path.join(run_dir, "labels", name)) as f:
+            with open(os.path.join(labels, name)) as f:
                 written[int(name[:-5])] = json.load(f)
-    summary.update(run_exit_code=run.returncode, rounds_written=len(written), answers_written=sum(map(len, written.values())),
-                   labels_match=all(written[r] == given.get(r) for r in written),
-                   tracebacks=[name for name in ("app.log", "run.log")
-                               if "Traceback" in open(os.path.join(args.out, name)).read()],
-                   notices=sorted(summary["notices"]))
+            digests[int(name[:-5])] = file_digest(os.path.join(run_dir, "queries", name[:-5] + ".npz"))
+    replacement = summary["replacement"] or {}
+    summary.update(
+        run_exit_code=run.returncode, rounds_written=len(written), answers_written=sum(map(len, written.values())),
+        labels_match=all(written[r] == given.get(r) for r in written),
+        labels_of_clips_shown=all(shown.get(r) == [digests[r]] * len(written[r]) for r in written),
+        replaced_round_labels=written.get(replacement.get("round")),
+        replaced_round_labels_are_after=replacement.get("round") in written and
+        written[replacement["round"]] == given[replacement["round"]] and
+        digests[replacement["round"]] == replacement["new_digest"],
+        rss_below_bound=summary["rss_peak_mb"] < args.rss_bound_mb,
+        clips_fetched=len(clip_bytes), clips_fetched_mb=round(sum(clip_bytes.values()) / 2 ** 20, 1),
+        tracebacks=[name for name in ("app.log", "run.log")
+                    if "Traceback" in open(os.path.join(args.out, name)).read()],
+        notices=sorted(summary["notices"]), messages=sorted(summary["messages"]),
+        minutes_run=round((time.time() - began) / 60, 2))
+    summary["checks"] = {
+        "labels files equal the answers given": summary["labels_match"],
+        "each answer given with its round's clips": summary["labels_of_clips_shown"],
+        "at least 20 rounds": summary["rounds_written"] >= 20,
+        "queries replaced once and handled": bool(replacement.get("handled")),
+        "the replaced round's labels are the answers after the replacement": summary["replaced_round_labels_are_after"],
+        "a second tab open a while, each tab showing the other": bool((summary["sustained_second_tab"] or {}).get("ok")),
+        "every momentary second tab showed the first": summary["second_tab_saw_first"] == summary["second_tabs"],
+        "reloads, each bringing the answers back": 0 < summary["reloads"] == summary["reloads_restored"],
+        f"app RSS below {args.rss_bound_mb:g} MB": summary["rss_below_bound"],
+        "no traceback": not summary["tracebacks"],
+        "no failure": "failure" not in summary}
+    summary["ok"] = all(summary["checks"].values())
+    log(f"checks: {json.dumps(summary['checks'], indent=1)}")
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     print(json.dumps(summary, indent=1))
-    return 0 if summary["labels_match"] and not summary["tracebacks"] else 1
+    return 0 if summary["ok"] else 1
 
 
 if __name__ == "__main__":
