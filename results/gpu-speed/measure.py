@@ -246,7 +246,7 @@ def instrument(namespace: dict, timers: Timers):
         timers.new_step(step)
         return update(self, step, *args, **kwargs)
     g["Progress"].update = step_start
-    g["Actor"].get_action = timers.item("act", g["Actor"].get_action)
+    g["act"] = timers.item("act", g["act"])
     g["RewardEnsemble"].mean_reward = timers.item("reward_prediction", g["RewardEnsemble"].mean_reward)
     g["ReplayBuffer"].add = timers.item("buffer_write", g["ReplayBuffer"].add)
     g["ReplayBuffer"].sample = timers.item("sample", g["ReplayBuffer"].sample)
