@@ -18,13 +18,12 @@ iteration per env step:
    buffer. One SAC update per step on the learned reward.
 Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
 
-Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
-B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
-(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
-teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
-query counts against the budget; labels obtained are logged apart. Early stopping's accuracy counts
-only strict (non-equal) labels. The stored reward of a new transition comes from the current reward
-ensemble; the next relabel overwrites it.
+Choices where the paper is silent. A stored observation keeps its noise, as in B-Pref's buffers;
+`--noise-resample` redraws its noise columns at every read (replay minibatches, reward training,
+relabelling, query scoring, k-NN), as ANF's code does. The teacher is B-Pref's, thresholds as
+written (the reference squares them after round one). Each asked query counts against the budget;
+labels obtained are logged apart. Early stopping's accuracy counts only strict (non-equal) labels. A
+new transition's stored reward is the current ensemble's; the next relabel overwrites it.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -1482,12 +1481,10 @@ class ExternalTeacher:
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
-                try:
-                    with open(path, "rb") as f:
-                        content = f.read()
-                    problem = labels_problem(content, n)
-                except IsADirectoryError:  # one line, as for a malformed file: the wait goes on
-                    problem = "a folder, not a file: move it away"
+                folder = os.path.isdir(path)  # in the file's place: one line, and the wait goes on
+                with open(os.devnull if folder else path, "rb") as f:
+                    content = f.read()
+                problem = "a folder, not a file: move it" if folder else labels_problem(content, n)
                 if problem is None:
                     break
                 problem = f"labels: {path}: {problem}; waiting for a corrected file"

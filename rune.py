@@ -26,16 +26,15 @@ beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--run
 `--rune-beta-decay` 1e-5: the paper's table). The paper calls the schedule "linear decay"; this is
 the geometric decay that RUNE's code computes under that name (a deviation from the paper's word).
 
-Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
-B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
-(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
-teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
-query counts against the budget; labels obtained are logged apart. Early stopping's accuracy counts
-only strict (non-equal) labels. The stored reward of a new transition comes from the current reward
-ensemble; the next relabel overwrites it. RUNE, as in its reference code: the bonus enters only the
-critic target (the actor sees it through Q), post-reset updates included, never pre-training
-(state-entropy reward) nor evaluation. Sigma is not normalised. beta_t decays from step 0, not from
-the first feedback round.
+Choices where the paper is silent. A stored observation keeps its noise, as in B-Pref's buffers;
+`--noise-resample` redraws its noise columns at every read (replay minibatches, reward training,
+relabelling, query scoring, k-NN), as ANF's code does. The teacher is B-Pref's, thresholds as
+written (the reference squares them after round one). Each asked query counts against the budget;
+labels obtained are logged apart. Early stopping's accuracy counts only strict (non-equal) labels. A
+new transition's stored reward is the current ensemble's; the next relabel overwrites it. RUNE, as
+in its reference code: the bonus enters only the critic target (the actor sees it through Q),
+post-reset updates included, never pre-training (state-entropy reward) nor evaluation. Sigma is not
+normalised. beta_t decays from step 0, not from the first feedback round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -1485,12 +1484,10 @@ class ExternalTeacher:
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
-                try:
-                    with open(path, "rb") as f:
-                        content = f.read()
-                    problem = labels_problem(content, n)
-                except IsADirectoryError:  # one line, as for a malformed file: the wait goes on
-                    problem = "a folder, not a file: move it away"
+                folder = os.path.isdir(path)  # in the file's place: one line, and the wait goes on
+                with open(os.devnull if folder else path, "rb") as f:
+                    content = f.read()
+                problem = "a folder, not a file: move it" if folder else labels_problem(content, n)
                 if problem is None:
                     break
                 problem = f"labels: {path}: {problem}; waiting for a corrected file"

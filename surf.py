@@ -35,18 +35,18 @@ past 128 (a deviation from the paper's word; `pbrl/reward_epochs` logs the passe
 Defaults: the paper's tau 0.99, lambda 1, ratio 10, crop 5; mu 1, not in the paper, is SURF's
 config's (its README's runs use mu 4 and tau 0.99, its config tau 0.95).
 
-Choices where the paper is silent. A stored observation keeps the noise the environment returned, as
-B-Pref's buffers keep it; `--noise-resample` redraws its noise columns whenever it is read back
-(replay minibatches, reward training, relabelling, query scoring, k-NN), as ANF's code does. The
-teacher is B-Pref's, thresholds as written (the reference squares them after round one). Each asked
-query counts against the budget; labels obtained are logged apart. The training accuracy counts only
-strict (non-equal) labels. The stored reward of a new transition comes from the current reward
-ensemble; the next relabel overwrites it. SURF: disagreement and entropy sampling score central
-steps; the teacher's skip and equal thresholds use central sums (the reference scores all stored
-steps, and its skip branch sums them). Pseudo-labels come from the cropped returns' forward pass,
-same noise read (per-step rewards: the central sum is the member's central return). The
-unlabelled pool keeps all rounds' pairs (max_feedback x ratio at most). Logged loss and accuracy:
-labelled pairs, last pass over them; pseudo-label rate: whole round.
+Choices where the paper is silent. A stored observation keeps its noise, as in B-Pref's buffers;
+`--noise-resample` redraws its noise columns at every read (replay minibatches, reward training,
+relabelling, query scoring, k-NN), as ANF's code does. The teacher is B-Pref's, thresholds as
+written (the reference squares them after round one). Each asked query counts against the budget;
+labels obtained are logged apart. The training accuracy counts only strict (non-equal) labels. A new
+transition's stored reward is the current ensemble's; the next relabel overwrites it. SURF:
+disagreement and entropy sampling score central steps; the teacher's skip and equal thresholds use
+central sums (the reference scores all stored steps, and its skip branch sums them). Pseudo-labels
+come from the cropped returns' forward pass, same noise read (per-step rewards: the central sum is
+the member's central return). The unlabelled pool keeps all rounds' pairs (max_feedback x ratio at
+most). Logged loss and accuracy: labelled pairs, last pass over them; pseudo-label rate: whole
+round.
 
 Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
@@ -1580,12 +1580,10 @@ class ExternalTeacher:
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
-                try:
-                    with open(path, "rb") as f:
-                        content = f.read()
-                    problem = labels_problem(content, n)
-                except IsADirectoryError:  # one line, as for a malformed file: the wait goes on
-                    problem = "a folder, not a file: move it away"
+                folder = os.path.isdir(path)  # in the file's place: one line, and the wait goes on
+                with open(os.devnull if folder else path, "rb") as f:
+                    content = f.read()
+                problem = "a folder, not a file: move it" if folder else labels_problem(content, n)
                 if problem is None:
                     break
                 problem = f"labels: {path}: {problem}; waiting for a corrected file"

@@ -244,7 +244,7 @@ def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(t
     helper.join()
     assert keep.tolist() == [True, True] and labels.tolist() == [1.0, 0.0]
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("labels:")]
-    assert lines == [f"labels: {folder}: a folder, not a file: move it away; waiting for a corrected file"]
+    assert lines == [f"labels: {folder}: a folder, not a file: move it; waiting for a corrected file"]
     (tmp_path / "labels" / "1.json").mkdir()
     with pytest.raises(ValueError, match=r"1.json is not the labels file this run trained on"):
         pebble.check_labels_unchanged(str(tmp_path), {"label_sha256": ["", "0" * 64]})
