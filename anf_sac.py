@@ -336,7 +336,7 @@ def random_mask(shape: torch.Size, sparsity: float, device: torch.device) -> tor
 def top_k_random_ties(scores: torch.Tensor, k: int) -> torch.Tensor:
     """Indices of the k largest scores per row; equal scores are ordered at random."""
     shuffle = torch.rand_like(scores).argsort(-1)
-    order = torch.sort(scores.gather(-1, shuffle), dim=-1, descending=True, stable=True).indices[..., :k]
+    order = scores.gather(-1, shuffle).sort(dim=-1, descending=True, stable=True).indices[..., :k]
     return shuffle.gather(-1, order)
 
 
@@ -355,7 +355,7 @@ def rigl_update_(weight: torch.Tensor, mask: torch.Tensor, dense_grad: torch.Ten
     kept = m.scatter(1, drop, 0.0)
     grow = top_k_random_ties(torch.where(kept.bool(), -torch.inf, g.abs()), n_drop)
     new_mask = kept.scatter(1, grow, 1.0)
-    assert torch.equal(new_mask.sum(1), m.sum(1)), "a topology update changed the number of active weights"
+    assert torch.equal(new_mask.sum(1), m.sum(1)), "a topology update changed the active count"
     w.mul_(kept)
     for moment in moments:
         moment.view(-1, size).mul_(kept)
@@ -415,7 +415,8 @@ def connectivity(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> dict:
     degree = (weight != 0).sum(0).float()
     column = torch.arange(weight.shape[1], device=weight.device)
     relevant = (column < obs_dim_real) | (column >= obs_dim)
-    metrics = {"relevant_degree": degree[relevant].mean(), "relevant_active_frac": degree[relevant].sum() / degree.sum()}
+    metrics = {"relevant_degree": degree[relevant].mean(),
+               "relevant_active_frac": degree[relevant].sum() / degree.sum()}
     if (~relevant).any():
         metrics["noise_degree"] = degree[~relevant].mean()
     return metrics
@@ -1020,6 +1021,28 @@ def check_finite(values: dict, step: int):
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
 
 
+def log_evaluation(writer: SummaryWriter, global_step: int, eval_return: float, eval_seconds: float,
+                   sps: int, shares: dict, loop, progress: Progress, counts: str = ""):
+    """An evaluation's tags (kept in `loop.last_eval`, logged again after a resume's purge), its
+    console line (`counts`: the PbRL scripts' feedback) and the NaN stop."""
+    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | shares
+    for tag, value in loop.last_eval.items():
+        writer.add_scalar(tag, value, global_step + 1)
+    print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+          f"eval_seconds={eval_seconds:.2f}{counts}", flush=True)
+    progress.eval_return = eval_return
+    check_finite({"eval/episodic_return": eval_return}, global_step)
+
+
+def log_losses(writer: SummaryWriter, global_step: int, losses: dict):
+    """The latest losses (`losses/`), read from the device in one sync, and the NaN stop."""
+    logged = dict(zip([f"losses/{name}" for name in losses],
+                      torch.stack(list(losses.values())).tolist()))
+    for tag, value in logged.items():
+        writer.add_scalar(tag, value, global_step)
+    check_finite(logged, global_step)
+
+
 def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
                device: torch.device, envs: list, writer: SummaryWriter):
     """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
@@ -1118,14 +1141,8 @@ if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
-        env = ene.make_env(
-            args.env_id,
-            args.seed,
-            args.noise,
-            args.noise_type,
-            args.noise_histograms,
-            args.episode_length,
-        )
+        env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
+                           args.noise_histograms, args.episode_length)
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
@@ -1135,12 +1152,8 @@ if __name__ == "__main__":
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
-            args.env_id,
-            args.seed + 1000 * (i + 1),
-            args.noise,
-            args.noise_type,
-            args.noise_histograms,
-            args.episode_length,
+            args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type,
+            args.noise_histograms, args.episode_length,
             video_folder if args.capture_video and i == 0 else None,
         )
         for i in range(args.eval_episodes)
@@ -1155,26 +1168,21 @@ if __name__ == "__main__":
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
-    if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
-        critic_gradients, actor_gradients, target_update = map(
-            torch.compile, (critic_gradients, actor_gradients, target_update)
-        )
-    # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
-    if args.cuda_graph:
-        # stream of its own: a capture cannot involve the legacy default one
-        torch.cuda.set_stream(torch.cuda.Stream())
-        critic_gradients, actor_gradients, target_update = map(
-            CudaGraph, (critic_gradients, actor_gradients, target_update)
-        )
+    steps = critic_gradients, actor_gradients, target_update  # `sac_update` calls them by name:
+    if args.compile:  # compiled from here on,
+        critic_gradients, actor_gradients, target_update = steps = tuple(map(torch.compile, steps))
+    if args.cuda_graph:  # and replayed as CUDA graphs (of the compiled ones with `--compile`)
+        torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
+        critic_gradients, actor_gradients, target_update = map(CudaGraph, steps)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.threads is not None or device.type == "cpu":
-        # several runs per machine: default threads oversubscribe the cores
+    if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
         torch.set_num_threads(args.threads or 1)
 
     obs_dim_real = env.obs_dim_real
     obs_dim = env.observation_space.shape[0]
     act_dim = env.action_space.shape[0]
+    dims = obs_dim_real, obs_dim, act_dim  # a checkpoint's
     noise = env.noise_sampler if args.noise_resample else None
 
     # ALGO LOGIC: the agent, and what it learns from
@@ -1187,9 +1195,8 @@ if __name__ == "__main__":
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
     progress = Progress(args.total_timesteps)
-    obs, start_step, elapsed = restore_run(
-        resume, saved, [env, *eval_envs], args, device, writer, progress, state_path
-    )
+    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer,
+                                           progress, state_path)
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
@@ -1231,63 +1238,42 @@ if __name__ == "__main__":
                 sac_update(agent, rb.sample(args.batch_size), loop, args)
 
                 if global_step % args.log_freq == 0:
-                    logged = dict(zip([f"losses/{name}" for name in loop.losses],
-                                      torch.stack(list(loop.losses.values())).tolist()))
-                    for tag, value in logged.items():
-                        writer.add_scalar(tag, value, global_step)
-                    check_finite(logged, global_step)
+                    log_losses(writer, global_step, loop.losses)
 
             if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
                 eval_start = time.time()
                 eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
                 eval_seconds = time.time() - eval_start
                 sps = int((global_step + 1) / (time.time() - start_time))
-                loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
-                loop.last_eval |= weight_shares(input_layers(agent), obs_dim_real, obs_dim)
-                for tag, value in loop.last_eval.items():
-                    writer.add_scalar(tag, value, global_step + 1)
+                shares = weight_shares(input_layers(agent), obs_dim_real, obs_dim)
                 for opt in (agent.actor_optimizer, agent.q_optimizer):
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
                         writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
                                           global_step + 1)
-                print(
-                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                    f"eval_seconds={eval_seconds:.2f}",
-                    flush=True,
-                )
-                progress.eval_return = eval_return
-                check_finite({"eval/episodic_return": eval_return}, global_step)
+                log_evaluation(writer, global_step, eval_return, eval_seconds, sps, shares, loop,
+                               progress)
                 if args.save_model:
-                    save_checkpoint(
-                        checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
-                    )
+                    save_checkpoint(checkpoint_path, args, global_step, saved, dims)
 
             if stop_signals or state_due(global_step, args, last_state):
-                save_state(
-                    state_path, args, global_step, time.time() - start_time, obs, saved, device,
-                    [env, *eval_envs], writer,
-                )
+                save_state(state_path, args, global_step, time.time() - start_time, obs, saved,
+                           device, [env, *eval_envs], writer)
                 last_state = time.monotonic()
                 if stop_signals:
-                    raise Stopped(
-                        f"stopped by {stop_signals[0]} after step {global_step + 1}; "
-                        f"state saved in {state_path}: "
-                        f"run the same command with --run-name {run_name} to resume"
-                    )
+                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; "
+                                  f"state saved in {state_path}: run the same command with "
+                                  f"--run-name {run_name} to resume")
     except (Stopped, NonFinite) as e:
         if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
-            save_checkpoint(
-                checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
-            )
+            save_checkpoint(checkpoint_path, args, global_step, saved, dims)
             e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         writer.close()
         raise SystemExit(f"{args.exp_name}: {e}")
 
-    env.close()
-    for eval_env in eval_envs:
-        eval_env.close()
+    for each in (env, *eval_envs):
+        each.close()
     writer.close()
     # last: a kill before this leaves a state to resume
     if not args.keep_state and os.path.exists(state_path):

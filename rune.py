@@ -249,10 +249,13 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
     if not 1 <= args.segment_size <= args.episode_length:
         raise ValueError(
-            f"--segment-size {args.segment_size} is longer than an episode (--episode-length {args.episode_length})"
+            f"--segment-size {args.segment_size} is longer than an episode "
+            f"(--episode-length {args.episode_length})"
         )
     if args.learning_starts <= args.knn_k:
-        raise ValueError(f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}")
+        raise ValueError(
+            f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}"
+        )
     if args.total_timesteps <= args.learning_starts + args.unsup_steps:
         raise ValueError(
             f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
@@ -260,8 +263,9 @@ def validate_args(args: Args) -> None:
         )
     if args.learning_starts + args.unsup_steps < args.episode_length:
         raise ValueError(
-            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must cover one episode "
-            f"(--episode-length {args.episode_length}): the first feedback round cuts segments from complete episodes"
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must "
+            f"cover one episode (--episode-length {args.episode_length}): the first feedback round "
+            f"cuts segments from complete episodes"
         )
     if args.buffer_size < args.batch_size:
         raise ValueError(
@@ -275,7 +279,9 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
     for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
         if not 0.0 <= getattr(args, flag) <= 1.0:
-            raise ValueError(f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}")
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
+            )
     for flag in (
         "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
         "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
@@ -426,7 +432,8 @@ class ReplayBuffer:
 class EpisodeStore:
     """Last `max_episodes` whole episodes to cut segments from: [obs, action] rows, true rewards."""
 
-    def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int, device: torch.device):
+    def __init__(self, max_episodes: int, episode_length: int, obs_dim: int, act_dim: int,
+                 device: torch.device):
         self.slots = max_episodes + 1  # one slot is being written, the others hold whole episodes
         self.inputs = torch.zeros((self.slots, episode_length, obs_dim + act_dim), device=device)
         self.true_rewards = torch.zeros((self.slots, episode_length), device=device)
@@ -438,7 +445,9 @@ class EpisodeStore:
     def add(self, obs, action, true_reward: float, physics: Optional[np.ndarray] = None):
         """Append one step. Episodes last `episode_length` steps: DMC episodes never end early."""
         slot = self.n_complete % self.slots
-        self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = obs, action
+        self.inputs[slot, self.t, : self.obs_dim], self.inputs[slot, self.t, self.obs_dim :] = (
+            obs, action
+        )
         self.true_rewards[slot, self.t] = true_reward
         if physics is not None:
             if self.physics.shape[2] != len(physics):
@@ -453,25 +462,33 @@ class EpisodeStore:
         (n, 2, H) and, with `with_physics`, their physics states (n, 2, H, P) in numpy."""
         device = self.inputs.device
         n_available = min(self.n_complete, self.max_episodes)
-        episodes = (self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)) % self.slots
+        episodes = (
+            self.n_complete - 1 - torch.randint(0, n_available, (n_pairs, 2), device=device)
+        ) % self.slots
         starts = torch.randint(0, self.episode_length - length + 1, (n_pairs, 2), device=device)
         steps = starts.unsqueeze(-1) + torch.arange(length, device=device)
         episodes = episodes.unsqueeze(-1)
         segments = self.inputs[episodes, steps], self.true_rewards[episodes, steps]
-        return (*segments, self.physics[episodes.cpu().numpy(), steps.cpu().numpy()]) if with_physics else segments
+        return (
+            (*segments, self.physics[episodes.cpu().numpy(), steps.cpu().numpy()])
+            if with_physics else segments
+        )
 
 
 class PreferenceBuffer:
     """Labelled segment pairs `(n, 2, H, obs+act)`, y = P[segment 1 preferred] in {0, 0.5, 1}."""
 
-    def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device, noise=None):
+    def __init__(self, capacity: int, segment_size: int, input_dim: int, device: torch.device,
+                 noise=None):
         self.segments = torch.zeros((capacity, 2, segment_size, input_dim), device=device)
         self.labels = torch.zeros(capacity, device=device)
         self.size, self.noise = 0, noise
 
     def add(self, segments: torch.Tensor, labels: torch.Tensor):
         n = len(labels)
-        self.segments[self.size : self.size + n], self.labels[self.size : self.size + n] = segments, labels
+        self.segments[self.size : self.size + n], self.labels[self.size : self.size + n] = (
+            segments, labels
+        )
         self.size += n
 
     def read(self, indices: torch.Tensor):
@@ -489,8 +506,12 @@ class RewardEnsemble(nn.Module):
         self.biases = nn.ParameterList()
         for fan_in, fan_out in zip(dims[:-1], dims[1:]):
             bound = 1 / math.sqrt(fan_in)  # nn.Linear's default initialisation, per member
-            self.weights.append(nn.Parameter(torch.empty(ensemble_size, fan_out, fan_in).uniform_(-bound, bound)))
-            self.biases.append(nn.Parameter(torch.empty(ensemble_size, 1, fan_out).uniform_(-bound, bound)))
+            self.weights.append(
+                nn.Parameter(torch.empty(ensemble_size, fan_out, fan_in).uniform_(-bound, bound))
+            )
+            self.biases.append(
+                nn.Parameter(torch.empty(ensemble_size, 1, fan_out).uniform_(-bound, bound))
+            )
         self.ensemble_size = ensemble_size
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -508,7 +529,10 @@ class RewardEnsemble(nn.Module):
         return mean, std
 
     def member_state_dicts(self) -> list:
-        return [{name: value[e] for name, value in self.state_dict().items()} for e in range(self.ensemble_size)]
+        return [
+            {name: value[e] for name, value in self.state_dict().items()}
+            for e in range(self.ensemble_size)
+        ]
 
 
 def rune_beta(step: int, beta_init: float, beta_decay: float) -> float:
@@ -523,7 +547,8 @@ def rune_batch(data: Batch, beta: float) -> Batch:
 
 
 def preference_loss(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Bradley-Terry cross-entropy per member. returns (E, B, 2) segment sums; labels (E, B) = P[segment 1 preferred]."""
+    """Bradley-Terry cross-entropy per member. returns (E, B, 2) segment sums;
+    labels (E, B) = P[segment 1 preferred]."""
     log_probs = F.log_softmax(returns, dim=-1)
     return -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
 
@@ -536,7 +561,8 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batc
         order = torch.rand(members, n, device=prefs.labels.device).argsort(1)  # per-member shuffle
         loss_sum, correct, strict = torch.zeros(3, device=prefs.labels.device)
         for start in range(0, n, batch_size):
-            segments, labels = prefs.read(order[:, start : start + batch_size])  # (E, B, 2, H, D), (E, B)
+            # (E, B, 2, H, D), (E, B)
+            segments, labels = prefs.read(order[:, start : start + batch_size])
             returns = model(segments.flatten(1, 3)).view(*labels.shape, 2, -1).sum(-1)
             member_losses = preference_loss(returns, labels)
             optimizer.zero_grad()
@@ -554,14 +580,17 @@ def train_reward(model: RewardEnsemble, optimizer, prefs: PreferenceBuffer, batc
 
 def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mistake: float,
             eps_skip: float, eps_equal: float):
-    """B-Pref's simulated teacher on true per-step rewards (n, H). Returns (kept pairs mask, labels in {0, 0.5, 1})."""
+    """B-Pref's simulated teacher on true per-step rewards (n, H).
+    Returns (kept pairs mask, labels in {0, 0.5, 1})."""
     returns0, returns1 = rewards0.sum(1), rewards1.sum(1)
     keep = torch.ones_like(returns0, dtype=torch.bool)
     if eps_skip > 0:  # skip pairs where neither segment is good enough
         keep = torch.maximum(returns0, returns1) > eps_skip * margin
     equal = (returns0 - returns1).abs() < eps_equal * margin
     horizon = rewards0.shape[1]
-    weights = gamma ** torch.arange(horizon - 1, -1, -1, device=rewards0.device, dtype=rewards0.dtype)
+    weights = gamma ** torch.arange(
+        horizon - 1, -1, -1, device=rewards0.device, dtype=rewards0.dtype
+    )
     discounted0, discounted1 = (rewards0 * weights).sum(1), (rewards1 * weights).sum(1)
     if beta > 0:
         labels = torch.bernoulli(torch.sigmoid(beta * (discounted1 - discounted0)))
@@ -573,6 +602,19 @@ def teacher(rewards0, rewards1, margin: float, beta: float, gamma: float, eps_mi
     return keep, labels
 
 
+def simulated_teacher(true_rewards: torch.Tensor, recent_returns, args: Args) -> tuple:
+    """B-Pref's simulated teacher on a round's pairs of segments' true rewards:
+    (answered mask, labels). Its margin is the mean of the last 10 episodes' returns, scaled to a
+    segment's length."""
+    margin = (float(np.mean(recent_returns)) * args.segment_size / args.episode_length
+              if recent_returns else 0.0)
+    return teacher(
+        true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
+        args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
+    )
+
+
+
 @torch.no_grad()
 def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int,
                    sampling: str, pool_multiplier: int, noise=None, with_physics: bool = False):
@@ -580,7 +622,9 @@ def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, s
     entropy). With `with_physics`, also their physics states."""
     if sampling == "uniform":
         return store.sample_segments(n_queries, segment_size, with_physics)
-    segments, true_rewards, *physics = store.sample_segments(n_queries * pool_multiplier, segment_size, with_physics)
+    segments, true_rewards, *physics = store.sample_segments(
+        n_queries * pool_multiplier, segment_size, with_physics
+    )
     inputs = read_noisy(segments, noise)
     returns = model(inputs.flatten(0, 2)).view(model.ensemble_size, *segments.shape[:3]).sum(-1)
     p = returns.softmax(-1)[..., 1]  # each member's P[segment 1 preferred], (E, pool)
@@ -603,7 +647,8 @@ class RunningMeanStd:
     def update(self, x: torch.Tensor):
         batch_mean, batch_var, n = x.mean(), x.var(correction=0), x.numel()
         delta, total = batch_mean - self.mean, self.count + n
-        self.var = (self.var * self.count + batch_var * n + delta**2 * self.count * n / total) / total
+        self.var = (self.var * self.count + batch_var * n
+                    + delta**2 * self.count * n / total) / total
         self.mean = self.mean + delta * n / total
         self.count = total
 
@@ -613,17 +658,20 @@ class RunningMeanStd:
 
 
 @torch.no_grad()
-def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int, chunk: int = 16384) -> torch.Tensor:
+def knn_distance(samples: torch.Tensor, points: torch.Tensor, k: int,
+                 chunk: int = 16384) -> torch.Tensor:
     """L2 distance from each sample to its k-th nearest neighbour among `points`, itself excluded.
     Samples are rows of `points`, so the nearest one, at distance 0, is skipped."""
     nearest = None
     for part in points.split(chunk):
-        d = torch.cdist(samples, part) if nearest is None else torch.cat([nearest, torch.cdist(samples, part)], 1)
+        d = (torch.cdist(samples, part) if nearest is None
+             else torch.cat([nearest, torch.cdist(samples, part)], 1))
         nearest = d.topk(min(k + 1, d.shape[1]), dim=1, largest=False).values
     return nearest[:, k]
 
 
-def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int, stats: RunningMeanStd) -> torch.Tensor:
+def state_entropy_reward(indices: torch.Tensor, points: torch.Tensor, k: int,
+                         stats: RunningMeanStd) -> torch.Tensor:
     """PEBBLE's intrinsic reward for rows `indices` of `points`: k-NN distance / running std."""
     distances = knn_distance(points[indices], points, k)
     stats.update(distances)
@@ -789,43 +837,38 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
         target_update(agent, args.tau)
 
 
-def feedback_round(sampling: str, global_step: int, loop: Loop, args: Args, reward_model: RewardEnsemble,
-                   reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer, rb: ReplayBuffer,
-                   queries: "QueryLog", diagnostic_positions: torch.Tensor, writer, run_folder: str,
-                   external: Optional["ExternalTeacher"]) -> float:
+def feedback_round(sampling: str, loop: Loop, args: Args, reward_model: RewardEnsemble,
+                   reward_optimizer, episodes: EpisodeStore, prefs: PreferenceBuffer,
+                   rb: ReplayBuffer, ask) -> dict:
     """Ask a round of queries, train the reward ensemble on all labels, relabel the whole buffer.
-    Returns the seconds spent waiting for an external teacher (not training time)."""
-    noise, obs_dim = rb.noise, rb.obs.shape[1]
+    `ask(segments, true_rewards, physics)` answers the pairs: (answered mask, labels), as
+    `simulated_teacher` does. Returns the reward training's scalars by tag (none before a label)."""
     n_queries = min(args.queries_per_round, args.max_feedback - loop.total_feedback)
     segments, true_rewards, physics = select_queries(
         reward_model, episodes, n_queries, args.segment_size, sampling, args.query_pool_multiplier,
-        noise, with_physics=True,
+        rb.noise, with_physics=True,
     )
-    keep, labels, sha256, waited = ask_teacher(
-        external, queries.next_round, args, loop, obs_dim, segments, true_rewards, physics, global_step,
-    )
-    log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments, true_rewards,
-                physics, torch.where(keep, labels, torch.nan), global_step, sha256)
+    keep, labels = ask(segments, true_rewards, physics)
     prefs.add(segments[keep], labels[keep])
     loop.total_feedback, loop.labeled_feedback = loop.total_feedback + n_queries, prefs.size
+    trained = {}
     if prefs.size:  # a round may yield no label at all (skipping teacher)
         loss, accuracy, epochs = train_reward(
-            reward_model, reward_optimizer, prefs, args.reward_batch_size, args.reward_epochs, args.reward_stop_accuracy,
+            reward_model, reward_optimizer, prefs, args.reward_batch_size, args.reward_epochs,
+            args.reward_stop_accuracy,
         )
-        writer.add_scalar("pbrl/reward_loss", loss, global_step)
-        writer.add_scalar("pbrl/reward_accuracy", accuracy, global_step)
-        writer.add_scalar("pbrl/reward_epochs", epochs, global_step)
-        check_finite({"pbrl/reward_loss": loss}, global_step)
+        trained = {"pbrl/reward_loss": loss, "pbrl/reward_accuracy": accuracy,
+                   "pbrl/reward_epochs": epochs}
     rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
-    log_round(writer, global_step, loop, args, reward_model, reward_optimizer, rb, episodes, diagnostic_positions)
-    return waited
+    return trained
 
 
 def feedback_due(step: int, pebble_start: int, loop: Loop, args: Args) -> bool:
     """Whether step `step` begins with a feedback round: the first at `pebble_start`, then one every
     `feedback_freq` steps while the budget lasts."""
     return step == pebble_start or (
-        step > pebble_start and (step - pebble_start) % args.feedback_freq == 0 and loop.total_feedback < args.max_feedback
+        step > pebble_start and (step - pebble_start) % args.feedback_freq == 0
+        and loop.total_feedback < args.max_feedback
     )
 
 
@@ -1270,6 +1313,28 @@ def check_finite(values: dict, step: int):
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
 
 
+def log_evaluation(writer: SummaryWriter, global_step: int, eval_return: float, eval_seconds: float,
+                   sps: int, shares: dict, loop, progress: Progress, counts: str = ""):
+    """An evaluation's tags (kept in `loop.last_eval`, logged again after a resume's purge), its
+    console line (`counts`: the PbRL scripts' feedback) and the NaN stop."""
+    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | shares
+    for tag, value in loop.last_eval.items():
+        writer.add_scalar(tag, value, global_step + 1)
+    print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
+          f"eval_seconds={eval_seconds:.2f}{counts}", flush=True)
+    progress.eval_return = eval_return
+    check_finite({"eval/episodic_return": eval_return}, global_step)
+
+
+def log_losses(writer: SummaryWriter, global_step: int, losses: dict):
+    """The latest losses (`losses/`), read from the device in one sync, and the NaN stop."""
+    logged = dict(zip([f"losses/{name}" for name in losses],
+                      torch.stack(list(losses.values())).tolist()))
+    for tag, value in logged.items():
+        writer.add_scalar(tag, value, global_step)
+    check_finite(logged, global_step)
+
+
 def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
                device: torch.device, envs: list, writer: SummaryWriter):
     """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
@@ -1352,39 +1417,47 @@ class QueryLog:
         self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
         self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
         self.physics = np.zeros((0, 2, segment_steps, physics_dim))
-        self.labels, self.rounds, self.steps = np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.labels, self.rounds, self.steps = (
+            np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        )
         self.label_sha256 = np.zeros(0, "<U64")  # indexed by round
 
     @property
     def next_round(self) -> int:
         return int(self.rounds.max(initial=-1)) + 1
 
-    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int, label_sha256: str = ""):
+    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int,
+            label_sha256: str = ""):
         new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
                    rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
         for name, value in new.items():
-            setattr(self, name, np.concatenate([getattr(self, name), np.asarray(value, getattr(self, name).dtype)]))
+            setattr(self, name, np.concatenate([getattr(self, name),
+                                                np.asarray(value, getattr(self, name).dtype)]))
         if round_index >= 0:  # padded: older states (no SHA-256 kept) resume with none per round
-            self.label_sha256 = np.concatenate([self.label_sha256, np.full(round_index - len(self.label_sha256), ""),
-                                                [label_sha256]]).astype("<U64")
+            self.label_sha256 = np.concatenate([
+                self.label_sha256, np.full(round_index - len(self.label_sha256), ""), [label_sha256]
+            ]).astype("<U64")
 
     def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
         """Write one round's queries to `{folder}/{round}.npz` (from `--preferences`: `seeded.npz`).
         Each round has its own file: it writes its own queries, not the whole log again."""
         rows = self.rounds == round_index
         inputs = self.inputs[rows]
-        sha256 = self.label_sha256[round_index:round_index + 1] if round_index >= 0 else self.label_sha256[:0]
+        sha256 = (self.label_sha256[round_index:round_index + 1] if round_index >= 0
+                  else self.label_sha256[:0])
         name = round_index if round_index >= 0 else "seeded"
-        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim], actions=inputs[..., obs_dim:],
-                  true_rewards=self.true_rewards[rows], physics=self.physics[rows], labels=self.labels[rows],
-                  rounds=self.rounds[rows], steps=self.steps[rows], label_sha256=sha256)
+        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim],
+                  actions=inputs[..., obs_dim:], true_rewards=self.true_rewards[rows],
+                  physics=self.physics[rows], labels=self.labels[rows], rounds=self.rounds[rows],
+                  steps=self.steps[rows], label_sha256=sha256)
 
 
 def read_preferences(path: str) -> dict:
     """A run's query log as one set of arrays, from its `preferences/` folder (seeded first, then
     the rounds in order) or a single `.npz` file."""
     if os.path.isdir(path):
-        rounds = sorted(int(name[:-4]) for name in os.listdir(path) if name.endswith(".npz") and name[:-4].isdigit())
+        rounds = sorted(int(name[:-4]) for name in os.listdir(path)
+                        if name.endswith(".npz") and name[:-4].isdigit())
         seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
         files = seeded + [f"{path}/{r}.npz" for r in rounds]
     else:
@@ -1395,27 +1468,48 @@ def read_preferences(path: str) -> dict:
             parts.append({name: data[name] for name in data.files})
     if not parts:
         raise ValueError(f"no preferences files in {path}")
-    joined = {name: np.concatenate([part[name] for part in parts]) for name in parts[0] if name != "env_id"}
+    joined = {name: np.concatenate([part[name] for part in parts])
+              for name in parts[0] if name != "env_id"}
     return dict(joined, env_id=parts[0]["env_id"])
 
 
-def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int, budget: int) -> dict:
+def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
+                     budget: int) -> dict:
     """The arrays of an earlier run's query log (`--preferences`): its `preferences/` folder or one
     `.npz` of it. A ValueError with one line if they do not fit this run."""
     if not os.path.exists(path):
         raise ValueError(f"--preferences: no such file or folder: {path}")
     try:
         arrays = read_preferences(path)
-        arrays = {name: arrays[name] for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
+        arrays = {name: arrays[name]
+                  for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
     except Exception as e:  # not an npz, a missing array
-        raise ValueError(f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})") from None
+        raise ValueError(
+            f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})"
+        ) from None
     shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
     if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
-        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} steps x {shape[1]} "
-                         f"features; this run needs {env_id}, {segment_steps} x {input_dim}")
+        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} "
+                         f"steps x {shape[1]} features; this run needs {env_id}, {segment_steps} x "
+                         f"{input_dim}")
     if len(arrays["labels"]) > budget:
-        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than --max-feedback {budget}")
+        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than "
+                         f"--max-feedback {budget}")
     return arrays
+
+
+def add_preferences(preferences: dict, queries: "QueryLog", prefs, loop, run_folder: str,
+                    env_id: str, obs_dim: int, device: torch.device):
+    """An earlier run's labels (`--preferences`): the first pairs of the query log and of the
+    labelled pairs, counted in the budget."""
+    inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
+    queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"],
+                -1, -1)
+    queries.save_round(f"{run_folder}/preferences", env_id, obs_dim, -1)
+    kept = ~np.isnan(preferences["labels"])
+    prefs.add(torch.as_tensor(inputs[kept], device=device),
+              torch.as_tensor(preferences["labels"][kept], device=device))
+    loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size
 
 
 class ExternalTeacher:
@@ -1431,9 +1525,11 @@ class ExternalTeacher:
 
     def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
         self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
-        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(), host=socket.gethostname(),
-                        budget=args.max_feedback, total_steps=args.total_timesteps)
-        self.status, self.told = None, -math.inf  # the last status written; when the step was (training seconds)
+        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(),
+                        host=socket.gethostname(), budget=args.max_feedback,
+                        total_steps=args.total_timesteps)
+        # the last status written; when the step was (training seconds)
+        self.status, self.told = None, -math.inf
 
     def nap(self):
         """Sleep `poll_seconds`, or until a stop signal. Python resumes a sleep after the signal's
@@ -1442,7 +1538,8 @@ class ExternalTeacher:
         while not self.stop_signals and time.monotonic() < until:
             time.sleep(0.05)
 
-    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None, message=None):
+    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None,
+             message=None):
         """Write `teacher.json`: what the labelling page shows."""
         self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
                         labelled=labelled, step=step, message=message))
@@ -1450,7 +1547,8 @@ class ExternalTeacher:
     def training(self, step: int, seconds: float):
         """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
         says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
-        if self.status is None or self.status["phase"] != "training" or seconds - self.told < self.step_seconds:
+        if (self.status is None or self.status["phase"] != "training"
+                or seconds - self.told < self.step_seconds):
             return
         self.told = seconds
         self.write(dict(self.status, step=step))
@@ -1462,25 +1560,31 @@ class ExternalTeacher:
             json.dump(self.status, f)
         os.replace(f"{self.folder}/teacher.json.tmp", f"{self.folder}/teacher.json")
 
-    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor, true_rewards: torch.Tensor,
-            physics: np.ndarray, step: int, asked: int, labelled: int) -> tuple:
+    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor,
+            true_rewards: torch.Tensor, physics: np.ndarray, step: int, asked: int,
+            labelled: int) -> tuple:
         """Write the round's queries, then wait for a valid labels file. A malformed one gets one
         line (and the page's notice); the wait goes on. Returns the answered pairs' mask and labels
         (0 where skipped), both on the segments' device, the file's SHA-256 and seconds waited. A
         stop signal raises `Stopped`: the state written before the round resumes into it."""
         rows = segments.cpu().numpy()
-        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id, obs=rows[..., :obs_dim],
-                  actions=rows[..., obs_dim:], physics=physics, true_rewards=true_rewards.cpu().numpy())
-        path, n, started, seen, problem = f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
-        print(f"waiting for labels: {path}, one per query of {self.folder}/queries/{round_index}.npz (by hand: python "
-              f"label_app.py {self.folder})", flush=True)
+        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id,
+                  obs=rows[..., :obs_dim], actions=rows[..., obs_dim:], physics=physics,
+                  true_rewards=true_rewards.cpu().numpy())
+        path, n, started, seen, problem = (
+            f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
+        )
+        print(f"waiting for labels: {path}, one per query of "
+              f"{self.folder}/queries/{round_index}.npz (by hand: python label_app.py "
+              f"{self.folder})", flush=True)
         while True:
             if self.stop_signals:
                 import gc
 
                 gc.freeze()  # run ends; exit skips collecting torch's and the run's objects (1 s+)
-                raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the state before this "
-                              f"round is saved: run the same command with --run-name {self.run['run']} to resume")
+                raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the "
+                              f"state before this round is saved: run the same command with "
+                              f"--run-name {self.run['run']} to resume")
             stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
             if stamp is not None and stamp != seen:
                 seen = stamp
@@ -1495,10 +1599,12 @@ class ExternalTeacher:
             self.tell("waiting", step, asked, labelled, round_index, n, problem)
             self.nap()
         answers = np.array([np.nan if a == "skip" else a for a in json.loads(content)], np.float32)
-        keep, labels = torch.as_tensor(~np.isnan(answers)), torch.nan_to_num(torch.as_tensor(answers))
+        keep, labels = (torch.as_tensor(~np.isnan(answers)),
+                        torch.nan_to_num(torch.as_tensor(answers)))
         self.tell("training", step, asked + n, labelled + int(keep.sum()))
         sha256 = hashlib.sha256(content).hexdigest()
-        return keep.to(segments.device), labels.to(segments.device), sha256, time.monotonic() - started
+        return (keep.to(segments.device), labels.to(segments.device), sha256,
+                time.monotonic() - started)
 
 
 def check_labels_unchanged(folder: str, queries: dict):
@@ -1507,8 +1613,9 @@ def check_labels_unchanged(folder: str, queries: dict):
     for round_index, recorded in enumerate(queries.get("label_sha256", [])):
         path = f"{folder}/labels/{round_index}.json"
         if recorded and file_sha256(path) != recorded:
-            raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 {recorded[:12]}...); put it "
-                             f"back as it was (the run's preferences/{round_index}.npz holds its labels)")
+            raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 "
+                             f"{recorded[:12]}...); put it back as it was (the run's "
+                             f"preferences/{round_index}.npz holds its labels)")
 
 
 LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # exactly these spellings: not 1.0, 1e0, -0 or 0.50
@@ -1536,41 +1643,57 @@ def file_sha256(path: str) -> Optional[str]:
         return hashlib.sha256(f.read()).hexdigest()
 
 
-def ask_teacher(external: Optional["ExternalTeacher"], round_index: int, args, loop, obs_dim: int,
-                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray, step: int) -> tuple:
-    """A round's labels: (answered mask, labels, the labels file's SHA-256, seconds waited).
+def run_feedback_round(sampling: str, global_step: int, queries: "QueryLog",
+                       diagnostic_positions: torch.Tensor, writer: SummaryWriter, run_folder: str,
+                       external: Optional["ExternalTeacher"], **objects) -> float:
+    """The method's `feedback_round` in a run: its teacher (`--teacher`), the query log
+    (`preferences/`), the round's tags and the finite check. `objects`: what `feedback_round` reads
+    and changes, by name. Returns the seconds spent waiting for an external teacher (not training
+    time)."""
+    loop, args, rb = objects["loop"], objects["args"], objects["rb"]
+    obs_dim, waited = rb.obs.shape[1], []
 
-    With an external teacher, a person or a program answers through files (labelling by hand).
-    Else B-Pref's simulated teacher answers from the segments' true rewards."""
-    if external and len(segments):
-        return external.ask(round_index, args.env_id, obs_dim, segments, true_rewards, physics,
-                            step, loop.total_feedback, loop.labeled_feedback)
-    margin = float(np.mean(loop.recent_returns)) * args.segment_size / args.episode_length if loop.recent_returns else 0.0
-    keep, labels = teacher(
-        true_rewards[:, 0], true_rewards[:, 1], margin, args.teacher_beta, args.teacher_gamma,
-        args.teacher_eps_mistake, args.teacher_eps_skip, args.teacher_eps_equal,
-    )
-    return keep, labels, "", 0.0
+    def ask(segments, true_rewards, physics, shown=slice(None)):
+        """Labels of the steps `shown` (SURF pads them with its crop's steps): from a person or a
+        program through files (labelling by hand), else from the simulated teacher. The whole
+        segments go to the query log."""
+        if external and len(segments):
+            keep, labels, sha256, seconds = external.ask(
+                queries.next_round, args.env_id, obs_dim, segments[:, :, shown],
+                true_rewards[:, :, shown], physics[:, :, shown], global_step, loop.total_feedback,
+                loop.labeled_feedback,
+            )
+        else:
+            keep, labels = simulated_teacher(true_rewards[:, :, shown], loop.recent_returns, args)
+            sha256, seconds = "", 0.0
+        log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments,
+                    true_rewards, physics, torch.where(keep, labels, torch.nan), global_step,
+                    sha256)
+        waited.append(seconds)
+        return keep, labels
+
+    trained = feedback_round(sampling, ask=ask, **objects)
+    trained |= {"pbrl/total_feedback": loop.total_feedback,
+                "pbrl/labeled_feedback": loop.labeled_feedback,
+                "pbrl/reward_steps": optimizer_steps(objects["reward_optimizer"])}
+    for tag, value in trained.items():
+        writer.add_scalar(tag, value, global_step)
+    check_finite(trained, global_step)
+    log_reward_diagnostics(writer, global_step, args.seed, objects["reward_model"], rb,
+                           objects["episodes"], diagnostic_positions, args.diagnostic_pairs,
+                           args.segment_size)
+    return sum(waited)
 
 
-def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int, segments: torch.Tensor,
-                true_rewards: torch.Tensor, physics: np.ndarray, labels: torch.Tensor, step: int, sha256: str):
+def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int,
+                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray,
+                labels: torch.Tensor, step: int, sha256: str):
     """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
     Labels are NaN where skipped."""
     round_index = queries.next_round
     queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(),
                 round_index, step, sha256)
     queries.save_round(folder, env_id, obs_dim, round_index)
-
-
-def log_round(writer: SummaryWriter, global_step: int, loop, args, reward_model: nn.Module,
-              reward_optimizer, rb, episodes, diagnostic_positions: torch.Tensor):
-    """The tags of a feedback round: feedback counts, reward optimiser steps, reward diagnostics."""
-    writer.add_scalar("pbrl/total_feedback", loop.total_feedback, global_step)
-    writer.add_scalar("pbrl/labeled_feedback", loop.labeled_feedback, global_step)
-    writer.add_scalar("pbrl/reward_steps", optimizer_steps(reward_optimizer), global_step)
-    log_reward_diagnostics(writer, global_step, args.seed, reward_model, rb, episodes,
-                           diagnostic_positions, args.diagnostic_pairs, args.segment_size)
 
 
 def optimizer_steps(optimizer) -> int:
@@ -1593,7 +1716,8 @@ def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, m
         predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
         correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
         segments, true_rewards = store.sample_segments(n_pairs, segment_size)
-        returns = model(read_noisy(segments, noise).flatten(0, 2)).mean(0).view(*segments.shape[:3]).sum(-1)
+        returns = (model(read_noisy(segments, noise).flatten(0, 2)).mean(0)
+                   .view(*segments.shape[:3]).sum(-1))
         _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
     strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
     accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
@@ -1637,18 +1761,11 @@ if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
-        env = ene.make_env(
-            args.env_id,
-            args.seed,
-            args.noise,
-            args.noise_type,
-            args.noise_histograms,
-            args.episode_length,
-        )
+        env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
+                           args.noise_histograms, args.episode_length)
         input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
         preferences = args.preferences and load_preferences(
-            args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback
-        )
+            args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback)
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
         if resume and args.teacher == "external":
             check_labels_unchanged(f"runs/{run_name}", resume["objects"]["queries"])
@@ -1660,12 +1777,8 @@ if __name__ == "__main__":
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
-            args.env_id,
-            args.seed + 1000 * (i + 1),
-            args.noise,
-            args.noise_type,
-            args.noise_histograms,
-            args.episode_length,
+            args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type,
+            args.noise_histograms, args.episode_length,
             video_folder if args.capture_video and i == 0 else None,
         )
         for i in range(args.eval_episodes)
@@ -1680,69 +1793,62 @@ if __name__ == "__main__":
     torch.manual_seed(args.seed)
     torch.backends.cudnn.deterministic = args.torch_deterministic
     torch.backends.cuda.matmul.allow_tf32 = args.tf32  # False is torch's default: FP32 matmuls
-    if args.compile:  # `sac_update` calls the steps by these names: compiled from here on
-        critic_gradients, actor_gradients, target_update = map(
-            torch.compile, (critic_gradients, actor_gradients, target_update)
-        )
-    # and from here on replayed as CUDA graphs (compiled ones with `--compile`), the run on a
-    if args.cuda_graph:
-        # stream of its own: a capture cannot involve the legacy default one
-        torch.cuda.set_stream(torch.cuda.Stream())
-        critic_gradients, actor_gradients, target_update = map(
-            CudaGraph, (critic_gradients, actor_gradients, target_update)
-        )
+    steps = critic_gradients, actor_gradients, target_update  # `sac_update` calls them by name:
+    if args.compile:  # compiled from here on,
+        critic_gradients, actor_gradients, target_update = steps = tuple(map(torch.compile, steps))
+    if args.cuda_graph:  # and replayed as CUDA graphs (of the compiled ones with `--compile`)
+        torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
+        critic_gradients, actor_gradients, target_update = map(CudaGraph, steps)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
-    if args.threads is not None or device.type == "cpu":
-        # several runs per machine: default threads oversubscribe the cores
+    if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
         torch.set_num_threads(args.threads or 1)
 
     obs_dim_real = env.obs_dim_real
     obs_dim = env.observation_space.shape[0]
     act_dim = env.action_space.shape[0]
+    dims = obs_dim_real, obs_dim, act_dim  # a checkpoint's
     noise = env.noise_sampler if args.noise_resample else None
 
     # ALGO LOGIC: the agent, and what it learns from
     agent = make_agent(obs_dim, act_dim, args, device)
-    reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers, args.ensemble_size)
-    reward_model = reward_model.to(device)
+    reward_model = RewardEnsemble(obs_dim + act_dim, args.reward_hidden_dim, args.reward_layers,
+                                  args.ensemble_size).to(device)
     reward_optimizer = optim.Adam(reward_model.parameters(), lr=args.reward_lr, foreach=True)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
-    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))  # preferences/
+    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))
     # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
-    diagnostic_positions = torch.rand(args.diagnostic_transitions, generator=torch.Generator().manual_seed(args.seed))
-    diagnostic_positions = diagnostic_positions.to(device)
+    diagnostic_positions = torch.rand(args.diagnostic_transitions,
+                                      generator=torch.Generator().manual_seed(args.seed)).to(device)
     loop = Loop()
     if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
-        inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
-        queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"], -1, -1)
-        queries.save_round(f"{run_folder}/preferences", args.env_id, obs_dim, -1)
-        kept = ~np.isnan(preferences["labels"])
-        prefs.add(torch.as_tensor(inputs[kept], device=device), torch.as_tensor(preferences["labels"][kept], device=device))
-        loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size
+        add_preferences(preferences, queries, prefs, loop, run_folder, args.env_id, obs_dim, device)
     # everything the loop changes, by name: `state.pt` saves and restores exactly these
-    saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb, episodes=episodes,
-                 prefs=prefs, entropy_stats=entropy_stats, queries=queries, loop=loop)
+    saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb,
+                 episodes=episodes, prefs=prefs, entropy_stats=entropy_stats, queries=queries,
+                 loop=loop)
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
-    external = ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external" else None
-    progress = Progress(args.total_timesteps, args.max_feedback, on_step=external.training if external else None)
-    obs, start_step, elapsed = restore_run(
-        resume, saved, [env, *eval_envs], args, device, writer, progress, state_path
-    )
+    external = (ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external"
+                else None)
+    progress = Progress(args.total_timesteps, args.max_feedback,
+                        on_step=external.training if external else None)
+    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer,
+                                           progress, state_path)
     del resume
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
     last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
-    round_objects = dict(  # what a feedback round reads and changes, by name
-        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer, episodes=episodes,
-        prefs=prefs, rb=rb, queries=queries, diagnostic_positions=diagnostic_positions, writer=writer,
-        run_folder=run_folder, external=external,
+    objects = dict(  # what a feedback round reads and changes, by name
+        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer,
+        episodes=episodes, prefs=prefs, rb=rb, queries=queries,
+        diagnostic_positions=diagnostic_positions, writer=writer, run_folder=run_folder,
+        external=external,
     )
     try:
         for global_step in range(start_step, args.total_timesteps):
@@ -1787,27 +1893,25 @@ if __name__ == "__main__":
                 if global_step < pebble_start:  # unsupervised pre-training, state-entropy reward
                     data = rb.sample(args.batch_size)
                     points = read_noisy(rb.obs[: rb.size], noise)
-                    intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k, entropy_stats)
+                    intrinsic_reward = state_entropy_reward(data.indices, points, args.knn_k,
+                                                            entropy_stats)
                     sac_update(agent, data._replace(rewards=intrinsic_reward), loop, args)
                     loop.losses["state_entropy_reward"] = intrinsic_reward.mean()
-                elif global_step == pebble_start:  # first feedback round, then a fresh critic on the learned reward
-                    start_time += feedback_round("uniform", global_step, **round_objects)
-                    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = make_critic(
-                        obs_dim, act_dim, args, device
+                elif global_step == pebble_start:  # the first round; a fresh critic on its reward
+                    start_time += run_feedback_round("uniform", global_step, **objects)
+                    agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = (
+                        make_critic(obs_dim, act_dim, args, device)
                     )
                     for _ in range(args.reset_updates):
                         sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)
                 else:
                     if feedback_due(global_step, pebble_start, loop, args):
-                        start_time += feedback_round(args.query_sampling, global_step, **round_objects)
+                        start_time += run_feedback_round(args.query_sampling, global_step,
+                                                         **objects)
                     sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)
 
                 if global_step % args.log_freq == 0:
-                    logged = dict(zip([f"losses/{name}" for name in loop.losses],
-                                      torch.stack(list(loop.losses.values())).tolist()))
-                    for tag, value in logged.items():
-                        writer.add_scalar(tag, value, global_step)
-                    check_finite(logged, global_step)
+                    log_losses(writer, global_step, loop.losses)
                     if global_step >= pebble_start:
                         writer.add_scalar("pbrl/beta", beta, global_step)
 
@@ -1816,54 +1920,39 @@ if __name__ == "__main__":
                 eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
                 eval_seconds = time.time() - eval_start
                 sps = int((global_step + 1) / (time.time() - start_time))
-                loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps}
-                loop.last_eval |= weight_shares(input_layers(agent), obs_dim_real, obs_dim)
+                shares = weight_shares(input_layers(agent), obs_dim_real, obs_dim)
                 members = {f"reward{i}": weight for i, weight in enumerate(reward_model.weights[0])}
-                loop.last_eval |= weight_shares(members, obs_dim_real, obs_dim)
-                for tag, value in loop.last_eval.items():
-                    writer.add_scalar(tag, value, global_step + 1)
-                print(
-                    f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-                    f"eval_seconds={eval_seconds:.2f} "
-                    f"feedback={loop.total_feedback}/{args.max_feedback} "
-                    f"labels={loop.labeled_feedback}",
-                    flush=True,
-                )
-                progress.eval_return = eval_return
-                check_finite({"eval/episodic_return": eval_return}, global_step)
+                shares |= weight_shares(members, obs_dim_real, obs_dim)
+                counts = (f" feedback={loop.total_feedback}/{args.max_feedback} "
+                          f"labels={loop.labeled_feedback}")
+                log_evaluation(writer, global_step, eval_return, eval_seconds, sps, shares, loop,
+                               progress, counts)
                 if args.save_model:
-                    save_checkpoint(
-                        checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
-                    )
+                    save_checkpoint(checkpoint_path, args, global_step, saved, dims)
 
+            # and before a person's round, so that a resume goes back into it
             if stop_signals or state_due(global_step, args, last_state) or (
-                external and feedback_due(global_step + 1, pebble_start, loop, args)  # a person's round can resume
+                external and feedback_due(global_step + 1, pebble_start, loop, args)
             ):
-                save_state(
-                    state_path, args, global_step, time.time() - start_time, obs, saved, device,
-                    [env, *eval_envs], writer,
-                )
+                save_state(state_path, args, global_step, time.time() - start_time, obs, saved,
+                           device, [env, *eval_envs], writer)
                 last_state = time.monotonic()
                 if stop_signals:
-                    raise Stopped(
-                        f"stopped by {stop_signals[0]} after step {global_step + 1}; "
-                        f"state saved in {state_path}: "
-                        f"run the same command with --run-name {run_name} to resume"
-                    )
+                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; "
+                                  f"state saved in {state_path}: run the same command with "
+                                  f"--run-name {run_name} to resume")
     except (Stopped, NonFinite) as e:
         if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
-            save_checkpoint(
-                checkpoint_path, args, global_step, saved, (obs_dim_real, obs_dim, act_dim)
-            )
+            save_checkpoint(checkpoint_path, args, global_step, saved, dims)
             e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
         if external:
-            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback, message=str(e))
+            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback,
+                          message=str(e))
         writer.close()
         raise SystemExit(f"{args.exp_name}: {e}")
 
-    env.close()
-    for eval_env in eval_envs:
-        eval_env.close()
+    for each in (env, *eval_envs):
+        each.close()
     writer.close()
     if external:
         external.tell("finished", args.total_timesteps, loop.total_feedback, loop.labeled_feedback)

@@ -7,6 +7,9 @@ A fix to the plumbing is made in pebble.py and copied; this test fails until eve
 import ast
 import os
 import re
+import shutil
+import subprocess
+import sys
 
 import pytest
 
@@ -70,3 +73,72 @@ def test_pebble_reads_algorithm_first():
     text = lines("pebble.py")
     first_network = next(i + 1 for i, line in enumerate(text) if re.match(r"class \w+\(nn\.Module\)", line))
     assert first_network < 300
+
+
+def plumbing_calls(source: str) -> list:
+    """(definition, name) for each name that a top-level definition between the first `# ALGO LOGIC` line and the
+    `# RUN PLUMBING` line uses (as a name or a string annotation) and that the `# RUN PLUMBING` block defines."""
+    text = source.split("\n")
+    algo = next(i for i, line in enumerate(text) if line.startswith("# ALGO LOGIC")) + 1
+    plumbing_start = next(i for i, line in enumerate(text) if line.startswith("# RUN PLUMBING")) + 1
+    main = next(i for i, line in enumerate(text) if line.startswith("if __name__")) + 1
+    tree = ast.parse(source)
+    defined = set()
+    for node in tree.body:
+        if plumbing_start <= node.lineno < main:
+            targets = node.targets if isinstance(node, ast.Assign) else [node]
+            defined |= {getattr(target, "name", None) or getattr(target, "id", None) for target in targets}
+    calls = []
+    for node in tree.body:
+        if algo <= node.lineno < plumbing_start:
+            used = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+            used |= {n.value for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+            calls += [(getattr(node, "name", node.lineno), name) for name in sorted(used & defined)]
+    return calls
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_the_method_never_calls_the_plumbing(script):
+    """Issue 42's seam: the method can be lifted out of its file without the `# RUN PLUMBING` block."""
+    with open(os.path.join(ROOT, script)) as f:
+        assert plumbing_calls(f.read()) == [], f"{script}: the method uses the plumbing"
+
+
+def test_the_seam_check_sees_a_plumbing_call_in_the_method():
+    with open(os.path.join(ROOT, "pebble.py")) as f:
+        source = f.read()
+    back = "    rb.relabel(reward_model.mean_reward, args.relabel_batch_size)\n    return trained\n"
+    assert source.count(back) == 1
+    broken = source.replace(back, "    check_finite(trained, 0)\n" + back)
+    assert plumbing_calls(broken) == [("feedback_round", "check_finite")]
+
+
+def test_the_method_runs_without_its_plumbing(tmp_path):
+    """docs/layout.md's loop, run as the page says: next to `pebble.py`, from the file above `# RUN PLUMBING` only."""
+    with open(os.path.join(ROOT, "docs", "layout.md")) as f:
+        code = re.search(r"## The method without its plumbing\n.*?```python\n(.*?)```", f.read(), re.S).group(1)
+    for name in ("pebble.py", "ene.py"):
+        shutil.copy(os.path.join(ROOT, name), tmp_path / name)
+    (tmp_path / "method_only.py").write_text(code)
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH="")
+    result = subprocess.run([sys.executable, "method_only.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    rounds = re.findall(r"step (\d+): labels (\d+), reward loss ([\d.]+)", result.stdout)
+    assert [(int(step), int(labels)) for step, labels, _ in rounds] == [(500, 5), (1000, 10), (1500, 15), (2000, 20)]
+    assert re.search(r"evaluation return -?[\d.]+\n$", result.stdout)
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_no_line_over_100_characters(script):
+    long = [i + 1 for i, line in enumerate(lines(script)) if len(line) > 100]
+    assert not long, f"{script}: lines over 100 characters: {long[:10]}"
+
+
+def test_the_main_block_stays_short():
+    """pebble.py's main block (`if __name__ == "__main__":` to the end) is setup and the loop; what it calls lives
+    above it. A method's own main-block lines (R2N's sparse optimisers and connectivity tags, SURF's unlabelled
+    buffer) come on top of these 200."""
+    text = lines("pebble.py")
+    main = next(i for i, line in enumerate(text) if line.startswith("if __name__"))
+    assert len(text[main:]) - (text[-1] == "") <= 200
