@@ -1919,7 +1919,7 @@ if __name__ == "__main__":
     obs_dim_real = env.obs_dim_real
     obs_dim = env.observation_space.shape[0]
     act_dim = env.action_space.shape[0]
-    dims = obs_dim_real, obs_dim, act_dim  # a checkpoint's
+    dims = obs_dim_real, obs_dim, act_dim  # recorded in each checkpoint
     noise = env.noise_sampler if args.noise_resample else None
 
     # ALGO LOGIC: the agent, and what it learns from
