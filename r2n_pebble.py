@@ -615,7 +615,6 @@ def simulated_teacher(true_rewards: torch.Tensor, recent_returns, args: Args) ->
     )
 
 
-
 @torch.no_grad()
 def select_queries(model: RewardEnsemble, store: EpisodeStore, n_queries: int, segment_size: int,
                    sampling: str, pool_multiplier: int, noise=None, with_physics: bool = False):
