@@ -110,12 +110,68 @@ def test_items_of_a_tiny_run_on_the_cpu(tmp_path):
     assert "# 50 plain steps from 250 to 300 (0 left out" in text
     once = ("act", "env_step", "physics_state", "reward_prediction", "buffer_write", "episode_write", "sample",
             "critic_gradients", "actor_gradients", "optimizer_step/critic", "optimizer_step/actor",
-            "optimizer_step/adam (alpha)", "sac_update (all)")
+            "optimizer_step/adam (alpha)", "sac_update (all)", "store (all)", "progress", "check_finite",
+            "state_due", "feedback_due", "action to host (.cpu)")
     for item in once:
         assert rows[item]["calls"] == "50", item
     assert rows["target_update"]["calls"] == "25"
     assert rows["act"]["gpu_us_mean"] == "nan"  # no GPU: host times only
-    parts = [r for name, r in rows.items() if name not in ("sac_update (all)", "step (whole)")]
+    # the episode that ends at step 300: its return's tags, the reset and the new observation's copy
+    assert rows["env_reset"]["calls"] == "1" and rows["writer.add_scalar"]["calls"] == "2"
+    assert rows["as_tensor (obs to the device)"]["calls"] == "51"
+    # the items that hold others are not summed with them
+    parts = [r for name, r in rows.items() if name not in ("sac_update (all)", "store (all)", "step (whole)")]
     leaves = sum(float(r["share_of_step"]) for r in parts)
     assert leaves == pytest.approx(1.0, abs=0.002)  # each share is written to 4 places
     assert "# evaluate: 1 calls" in text  # the one at the end, after the window
+
+
+def test_adam_capture_settle_step_is_where_torchs_adam_scalars_stop_changing():
+    """From the settle step on, a foreach Adam step is the same whatever the step count (its float32 scalars are
+    their limits), so a graph captured there replays exactly; one step earlier it is not."""
+    import adam_capture
+    import torch
+
+    lr, betas = 1e-4, (0.9, 0.999)  # the scripts' agent Adams
+    settle = adam_capture.settle_step(lr, *betas)
+    assert 10_000 < settle < 20_000
+
+    def step_at(t):
+        """The parameters after one step at step count t, from the same state and gradient."""
+        generator = torch.Generator().manual_seed(0)
+        param = torch.nn.Parameter(torch.randn(1000, generator=generator))
+        adam = torch.optim.Adam([param], lr=lr, betas=betas, foreach=True)
+        param.grad = torch.randn(1000, generator=generator)
+        adam.step()
+        adam.state[param]["step"].fill_(t - 1)
+        param.grad = torch.randn(1000, generator=generator)
+        adam.step()
+        return param.detach().clone()
+
+    later = step_at(settle + 50_000)
+    assert torch.equal(step_at(settle), later)
+    assert not torch.equal(step_at(settle - 1), later)
+
+
+def test_adam_capture_host_counts_move_by_one_update(tmp_path):
+    """The counts an update keeps on the host: one `sac_update` moves each by one (the sparse optimisers' too), and
+    writing the old values back undoes it, as after a capture."""
+    import adam_capture
+
+    sys.path.insert(0, ROOT)
+    import r2n_pebble
+
+    args = r2n_pebble.Args(hidden_dim=16, batch_size=8)
+    agent, loop = r2n_pebble.make_agent(5, 2, args, r2n_pebble.torch.device("cpu")), r2n_pebble.Loop()
+    torch = r2n_pebble.torch
+    batch = r2n_pebble.Batch(torch.randn(8, 5), torch.rand(8, 2), torch.randn(8), torch.randn(8, 5), torch.zeros(8),
+                             torch.arange(8))
+    r2n_pebble.sac_update(agent, batch, loop, args)  # Adam's state exists from here
+    counts = adam_capture.HostCounts(agent, loop)
+    assert len(counts.sparse) == 2 and len(counts.steps) == 12 + 6 + 1  # two critics, actor, temperature
+    before = counts.read()
+    r2n_pebble.sac_update(agent, batch, loop, args)
+    after = counts.read()
+    assert [a - b for a, b in zip(after, before)] == [1] * len(before)
+    counts.write(before)
+    assert counts.read() == before

@@ -1,9 +1,13 @@
 """The helper of `measure.sh` (issue 32): one instrumented run, and the tables read from the runs' event files and logs.
 
 - `items`: runs a training script in this process with a timer around each step item (acting, the env step, the
-  reward prediction, buffer writes, sampling, the three SAC steps, the optimiser steps). Host microseconds come from
-  `time.perf_counter`; GPU microseconds from CUDA events on the run's stream, that is the stream time between an
-  item's start and end marks (a GPU waiting for the host counts in it). Only steps of the window count, and none
+  reward prediction, buffer writes, sampling, the three SAC steps, the optimiser steps) and around the loop body's own
+  calls (the progress line, the NaN check, the observation's copy to the device, the action's to the host, which on a
+  GPU waits for the work queued before it, the state and feedback clocks, the env's reset, the episode's tags). Host
+  microseconds come from `time.perf_counter`; GPU microseconds from CUDA events on the run's stream, that is the
+  stream time between an item's start and end marks (a GPU waiting for the host counts in it). The timers' own time
+  is an item of its own. "other (loop body)" is what is left: the loop's own lines, and the lines of `sac_update` and
+  `store` outside the items they call; its median is over the steps. Only steps of the window count, and none
   holding an evaluation, a feedback round or a state write.
 - `rates`: the steady-state steps/s of the runs of one configuration (runs that ran at once), each over the same step
   window, from the wall times of its `losses/qf_loss` points; their sum, the rate over the wall-clock span in
@@ -24,6 +28,7 @@ import time
 import types
 import xml.etree.ElementTree as ET
 
+OVERHEAD = "(the timers' own overhead)"
 TAG = "losses/qf_loss"  # logged every --log-freq steps after a host sync: the wall time of a step's end
 
 
@@ -140,9 +145,11 @@ class Timers:
         self.step, self.step_start, self.busy = None, None, False  # busy: the step held an eval, round or state
         self.leaf, self.blocked = 0, 0  # depth inside an item (no double counts) and inside an excluded part
         self.calls, self.step_seconds, self.skipped_steps = [], [], 0
+        self.step_other = []  # per plain step: its seconds outside every leaf item
         self.current = []  # this step's calls, kept only if the step turns out plain
         self.excluded = {}  # seconds of the excluded parts (evaluations, rounds, state writes), each call
         self.on_window_end = None
+        self.wrappers = set()  # the items that hold other items (not leaves): not summed with them
 
     def in_window(self) -> bool:
         return self.step is not None and self.first <= self.step < self.last
@@ -155,6 +162,8 @@ class Timers:
             else:
                 self.step_seconds.append(now - self.step_start)
                 self.calls.extend(self.current)
+                leaves = sum(c[1] for c in self.current if c[0] not in self.wrappers)
+                self.step_other.append(now - self.step_start - leaves)
         self.step, self.step_start, self.busy, self.current = step, now, False, []
         if step >= self.last and self.on_window_end is not None:  # written now: the run may be cut off later
             self.on_window_end(self)
@@ -166,8 +175,11 @@ class Timers:
         import torch
 
         timers = self
+        if not leaf:
+            self.wrappers.add(name)
 
         def timed(*args, **kwargs):
+            entered = time.perf_counter()
             label = name(*args) if callable(name) else name
             if timers.blocked or (leaf and timers.leaf) or not timers.in_window():
                 return fn(*args, **kwargs)
@@ -185,6 +197,8 @@ class Timers:
                 if marks:
                     marks[1].record()
                 timers.current.append((label, host, marks))
+                # This wrapper's own time (the events, the clock, the label) would otherwise count as loop body.
+                timers.current.append((OVERHEAD, time.perf_counter() - entered - host, None))
         return functools.wraps(fn)(timed)
 
     def excluding(self, name, fn):
@@ -221,9 +235,9 @@ class Timers:
                              gpu_us_mean=statistics.fmean(gpu) if gpu else float("nan"),
                              gpu_us_median=statistics.median(gpu) if gpu else float("nan"),
                              host_us_per_step=per_step, share_of_step=per_step / step_us))
-        leaves = sum(r["host_us_per_step"] for r in rows if r["item"] != "sac_update (all)")
+        leaves = sum(r["host_us_per_step"] for r in rows if r["item"] not in self.wrappers)
         rows.append(dict(item="other (loop body)", calls=steps, calls_per_step=1.0, host_us_mean=step_us - leaves,
-                         host_us_median=float("nan"), gpu_us_mean=float("nan"), gpu_us_median=float("nan"),
+                         host_us_median=1e6 * statistics.median(self.step_other) if steps else float("nan"), gpu_us_mean=float("nan"), gpu_us_median=float("nan"),
                          host_us_per_step=step_us - leaves, share_of_step=(step_us - leaves) / step_us))
         rows.append(dict(item="step (whole)", calls=steps, calls_per_step=1.0, host_us_mean=step_us,
                          host_us_median=1e6 * statistics.median(self.step_seconds) if steps else float("nan"),
@@ -242,10 +256,21 @@ def instrument(namespace: dict, timers: Timers):
     g = namespace
     update = g["Progress"].update
 
+    timed_update = timers.item("progress", update)
+
     def step_start(self, step, *args, **kwargs):  # the loop calls it first in every step
         timers.new_step(step)
-        return update(self, step, *args, **kwargs)
+        return timed_update(self, step, *args, **kwargs)
     g["Progress"].update = step_start
+    # The loop body's own calls, so that "other (loop body)" is only its Python lines.
+    for name in ("check_finite", "log_losses", "state_due", "feedback_due"):
+        if name in g:
+            g[name] = timers.item(name, g[name])
+    g["store"] = timers.item("store (all)", g["store"], leaf=False)
+    torch.as_tensor = timers.item("as_tensor (obs to the device)", torch.as_tensor)
+    # The action's copy to the host: on a GPU it waits for the work queued before it.
+    torch.Tensor.cpu = timers.item("action to host (.cpu)", torch.Tensor.cpu)
+    g["SummaryWriter"].add_scalar = timers.item("writer.add_scalar", g["SummaryWriter"].add_scalar)
     g["act"] = timers.item("act", g["act"])
     g["RewardEnsemble"].mean_reward = timers.item("reward_prediction", g["RewardEnsemble"].mean_reward)
     g["ReplayBuffer"].add = timers.item("buffer_write", g["ReplayBuffer"].add)
@@ -272,6 +297,7 @@ def instrument(namespace: dict, timers: Timers):
         env = make_env(*args, **kwargs)
         env.step = timers.item("env_step", env.step)
         env.physics_state = timers.item("physics_state", env.physics_state)
+        env.reset = timers.item("env_reset", env.reset)
         return env
     ene.make_env = timed_env
 
@@ -324,9 +350,11 @@ def write_items(timers: Timers, out: str):
 
 
 def print_table(rows: list):
-    print(f"{'item':34s} {'calls/step':>10s} {'host us':>9s} {'gpu us':>9s} {'host us/step':>12s} {'share':>6s}")
+    print(f"{'item':34s} {'calls/step':>10s} {'host us':>9s} {'median':>9s} {'gpu us':>9s} {'host us/step':>12s} "
+          f"{'share':>6s}")
     for r in rows:
-        print(f"{r['item']:34s} {r['calls_per_step']:10.2f} {r['host_us_mean']:9.1f} {r['gpu_us_mean']:9.1f} "
+        print(f"{r['item']:34s} {r['calls_per_step']:10.2f} {r['host_us_mean']:9.1f} {r['host_us_median']:9.1f} "
+              f"{r['gpu_us_mean']:9.1f} "
               f"{r['host_us_per_step']:12.1f} {100 * r['share_of_step']:5.1f}%")
 
 

@@ -4,6 +4,8 @@
 # finished. The runs live in a work folder outside OUT: their state files are about 1 GB each.
 # Parts, in order (README "The prepared measurement (issue 32)"):
 #   items      host and GPU microseconds of each step item of a captured run (measure.py items) -> items.csv
+#   adam       one graph per SAC update, Adam inside, once its scalars settle: bit for bit against eager, and the
+#              milliseconds per update of eager, today's --cuda-graph and the whole capture (adam_capture.py) -> adam.json
 #   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt
 #   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
 #   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
@@ -46,7 +48,8 @@ if [ "$dry" = "--dry-run" ]; then
   configs=("no x2 2" "yes x2 2")  # MPS cannot start on the CPU: its row is skipped
   exact_workers=1
   actor_flags=(--hidden-dim 32 --batch-size 32 --repeats 5)
-  budget_items=120 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
+  adam_flags=(--device cpu --hidden-dim 32 --batch-size 32 --updates 20 --blocks 1)
+  budget_items=120 budget_adam=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
   declare -A config_budget=([x2]=70)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
@@ -65,17 +68,19 @@ else
   # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers; in the second
   # session (after the actor change, a slower host) 144 s on 16 workers, and the window its whole 115 s
   actor_flags=(--cuda --repeats 30)
-  budget_items=45 budget_actor=20 budget_exact=160 budget_window=115 budget_aggregate=230
+  adam_flags=(--device cuda --updates 300 --blocks 5)  # the paper's size: 1024 wide, batch 1024
+  # adam: 2 scripts x 3 arms x 6 passes of 300 updates, at most about 4 ms each, plus the imports
+  budget_items=45 budget_adam=45 budget_actor=20 budget_exact=160 budget_window=115 budget_aggregate=185
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
-parts=(${PARTS:-items actor exact window aggregate})
+parts=(${PARTS:-items adam actor exact window aggregate})
 total=0
 plan=""
 for part in "${parts[@]}"; do
   budget="budget_$part"
-  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items actor exact window aggregate)"; exit 2; }
+  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items adam actor exact window aggregate)"; exit 2; }
   total=$((total + ${!budget}))
   plan+="$part ${!budget} s, "
 done
@@ -133,6 +138,13 @@ part_items() {
     "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
   wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
   [ -f "$out/items.csv" ] && cat "$out/items.csv"
+}
+
+part_adam() {
+  (cd "$root" && exec timeout -s KILL "$budget_adam" "$py" results/gpu-speed/adam_capture.py "${adam_flags[@]}" \
+    --out "$out/adam.json" > "$work/adam.log" 2>&1) &
+  wait $! || echo "adam: exit $? (137: cut off at its budget)"
+  cat "$work/adam.log"
 }
 
 part_actor() {

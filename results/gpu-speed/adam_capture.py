@@ -1,0 +1,243 @@
+"""Issue 44, item 2, prepared for a GPU: one CUDA graph per SAC update, the optimiser steps inside it, exact.
+
+torch's foreach Adam (the scripts' Adams, not capturable) computes its bias corrections on the host from each
+parameter's step count t and passes them to its kernels as scalars: -lr / (1 - beta1^t) and sqrt(1 - beta2^t). A graph
+captured at step t would replay t's scalars. They stop changing in float32 once they round to their limits, -lr and 1:
+from `settle_step` on (16 6xx steps at the scripts' betas). From there a captured update replays exactly the kernels
+that eager runs, with the same scalars. Before it, the updates stay eager. The counts that the update keeps on the host
+(Adam's `step` tensors on the CPU, `loop.sac_updates`, the sparse optimiser's `steps`) move during the capture and not
+during a replay: the capture's own moves are undone, and each replay applies them.
+
+    python results/gpu-speed/adam_capture.py --device cuda [--script pebble] [--hidden-dim 1024 --batch-size 1024]
+
+Three arms, each on an agent built from the same seed, each fed the same batches: `eager` (the scripts' `sac_update`),
+`parts` (today's `--cuda-graph`: the three gradient steps captured, the optimiser steps eager; CUDA only) and `whole`
+(one graph per update and per branch pattern, after `--warmup` eager updates). Every optimiser's step count starts at
+the settle step (as in a run past its first 16 6xx updates). Prints and writes (`--out`) the bit-for-bit comparison
+of every parameter, Adam moment and step count against `eager`, and the median milliseconds per update of each arm over
+interleaved blocks. On the CPU, `whole` runs its updates eagerly through the same host bookkeeping: a check of the
+harness, not of a graph.
+"""
+import argparse
+import importlib
+import json
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, ROOT)
+OBS_DIM, ACT_DIM = 171, 6  # cheetah-run at --noise 0.9
+
+
+def settle_step(lr: float, beta1: float, beta2: float) -> int:
+    """The first step count t from which foreach Adam's host scalars, as float32, no longer change.
+    They move monotonically towards their limits, so once equal to them they stay equal."""
+    limits = np.float32((lr / 1.0) * -1), np.float32(1.0)
+    t = 1
+    while (np.float32((lr / (1 - beta1**t)) * -1), np.float32((1 - beta2**t) ** 0.5)) != limits:
+        t += 1
+    return t
+
+
+def adams(agent) -> list:
+    """The agent's torch Adams (inside the sparse optimiser's wrapper, where there is one)."""
+    found = []
+    for optimizer in (agent.q_optimizer, agent.actor_optimizer, agent.a_optimizer):
+        found.append(getattr(optimizer, "optimizer", optimizer))
+    return found
+
+
+def agent_settle_step(agent) -> int:
+    return max(settle_step(g["lr"], *g["betas"]) for adam in adams(agent) for g in adam.param_groups)
+
+
+def set_steps(agent, t: int):
+    for adam in adams(agent):
+        for state in adam.state.values():
+            state["step"].fill_(t)
+
+
+class HostCounts:
+    """The counts an update keeps on the host: read, restored, and moved by a delta."""
+
+    def __init__(self, agent, loop):
+        self.loop = loop
+        self.steps = [s["step"] for adam in adams(agent) for s in adam.state.values()]
+        self.sparse = [o for o in (agent.actor_optimizer, agent.q_optimizer) if hasattr(o, "steps")]
+
+    def read(self) -> list:
+        return ([self.loop.sac_updates] + [o.steps for o in self.sparse]
+                + [float(t) for t in self.steps])
+
+    def write(self, values: list):
+        self.loop.sac_updates = values[0]
+        for o, v in zip(self.sparse, values[1:]):
+            o.steps = v
+        for t, v in zip(self.steps, values[1 + len(self.sparse):]):
+            t.fill_(v)
+
+
+class WholeUpdate:
+    """`sac_update` as one graph per branch pattern (actor due, target due), after `warmup` eager updates."""
+
+    def __init__(self, module, agent, loop, args, device, warmup: int):
+        self.module, self.agent, self.loop, self.args, self.device = module, agent, loop, args, device
+        self.warmup, self.calls, self.graphs, self.counts = warmup, 0, {}, HostCounts(agent, loop)
+        for adam in adams(agent):  # the scalars are the same at every replay: see settle_step
+            adam._accelerator_graph_capture_health_check = lambda: None
+            adam._cuda_graph_capture_health_check = lambda: None
+
+    def key(self) -> tuple:
+        n = self.loop.sac_updates + 1
+        return n % self.args.actor_update_freq == 0, n % self.args.target_update_freq == 0
+
+    def topology_due(self) -> bool:
+        """RigL's steps stay eager: an update that holds one runs eagerly."""
+        return any(o.sparsity and (o.steps + 1) % o.period == 0 for o in self.counts.sparse)
+
+    def __call__(self, data):
+        self.calls += 1
+        if self.device.type != "cuda" or self.topology_due():
+            return self.module.sac_update(self.agent, data, self.loop, self.args)
+        if self.calls <= self.warmup:  # on a side stream, as a capture asks
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                self.module.sac_update(self.agent, data, self.loop, self.args)
+            torch.cuda.current_stream().wait_stream(side)
+            return
+        key = self.key()
+        if key not in self.graphs:
+            static = type(data)(*map(torch.clone, data))
+            before = self.counts.read()
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                self.module.sac_update(self.agent, static, self.loop, self.args)
+            after = self.counts.read()
+            self.counts.write(before)  # the capture ran no kernel: its host moves are undone
+            self.graphs[key] = graph, static, [a - b for a, b in zip(after, before)]
+        graph, static, delta = self.graphs[key]
+        torch._foreach_copy_(list(static), list(data))
+        graph.replay()
+        self.counts.write([v + d for v, d in zip(self.counts.read(), delta)])
+
+
+def snapshot(agent) -> dict:
+    """Every parameter, Adam moment and step count of the agent, by name, on the host."""
+    out = {}
+    for name, value in vars(agent).items():
+        if isinstance(value, torch.nn.Module):
+            out |= {f"{name}.{k}": v.detach().cpu().clone() for k, v in value.state_dict().items()}
+        elif isinstance(value, torch.Tensor):
+            out[name] = value.detach().cpu().clone()
+    for i, adam in enumerate(adams(agent)):
+        for j, state in enumerate(adam.state.values()):
+            out |= {f"adam{i}.{j}.{k}": v.detach().cpu().clone() for k, v in state.items()}
+    return out
+
+
+def same_bits(a: dict, b: dict) -> list:
+    """The names whose tensors differ in any bit."""
+    return [k for k in a if a[k].shape != b[k].shape
+            or not torch.equal(a[k].view(torch.int32) if a[k].dtype == torch.float32 else a[k],
+                               b[k].view(torch.int32) if b[k].dtype == torch.float32 else b[k])]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--scripts", nargs="+", default=["pebble", "r2n_pebble"])
+    parser.add_argument("--hidden-dim", type=int, default=1024)
+    parser.add_argument("--batch-size", type=int, default=1024)
+    parser.add_argument("--updates", type=int, default=300)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--blocks", type=int, default=5, help="timing: interleaved blocks of `--updates` each")
+    parser.add_argument("--out", default=None)
+    cli = parser.parse_args()
+    device = torch.device(cli.device)
+    torch.set_num_threads(1)
+    if device.type == "cuda":  # a stream of its own, as the scripts' --cuda-graph
+        torch.cuda.set_stream(torch.cuda.Stream())
+    result = dict(device=torch.cuda.get_device_name() if device.type == "cuda" else "cpu", torch=torch.__version__,
+                  hidden_dim=cli.hidden_dim, batch_size=cli.batch_size, updates=cli.updates, scripts={})
+    for name in cli.scripts:
+        module = importlib.import_module(name)
+        args = module.Args(hidden_dim=cli.hidden_dim, batch_size=cli.batch_size)
+        generator = torch.Generator().manual_seed(1)
+        batches = [module.Batch(torch.randn(cli.batch_size, OBS_DIM, generator=generator),
+                                torch.rand(cli.batch_size, ACT_DIM, generator=generator) * 2 - 1,
+                                torch.randn(cli.batch_size, generator=generator),
+                                torch.randn(cli.batch_size, OBS_DIM, generator=generator),
+                                torch.zeros(cli.batch_size), torch.arange(cli.batch_size))
+                   for _ in range(cli.updates)]
+        batches = [module.Batch(*(t.to(device) for t in b)) for b in batches]
+        arms = ["eager", "whole"] + (["parts"] if device.type == "cuda" else [])
+        agents, loops, updates = {}, {}, {}
+        for arm in arms:
+            torch.manual_seed(0)
+            agents[arm], loops[arm] = module.make_agent(OBS_DIM, ACT_DIM, args, device), module.Loop()
+            module.sac_update(agents[arm], batches[0], loops[arm], args)  # Adam's state exists from here
+            settled = agent_settle_step(agents[arm])
+            set_steps(agents[arm], settled)
+        saved = {n: getattr(module, n) for n in ("critic_gradients", "actor_gradients", "target_update")}
+        graphs = {n: module.CudaGraph(f) for n, f in saved.items()} if "parts" in arms else {}
+
+        def update_with(arm):
+            if arm == "whole":
+                return updates.setdefault(arm, WholeUpdate(module, agents[arm], loops[arm], args, device,
+                                                           cli.warmup))
+            if arm == "parts":
+                def parts(data):
+                    for n, g in graphs.items():
+                        setattr(module, n, g)
+                    try:
+                        module.sac_update(agents[arm], data, loops[arm], args)
+                    finally:
+                        for n, f in saved.items():
+                            setattr(module, n, f)
+                return parts
+            return lambda data: module.sac_update(agents[arm], data, loops[arm], args)
+
+        # the comparison: the same seed's RNG stream for every arm, over the same batches
+        states = {}
+        for arm in arms:
+            torch.manual_seed(2)
+            step = update_with(arm)
+            for data in batches[1:]:
+                step(data)
+            if device.type == "cuda":
+                torch.cuda.synchronize()
+            states[arm] = snapshot(agents[arm])
+        compare = {arm: same_bits(states["eager"], states[arm]) for arm in arms if arm != "eager"}
+        # the timing: interleaved blocks, each arm continuing from where it stood
+        times = {arm: [] for arm in arms}
+        for _ in range(cli.blocks):
+            for arm in arms:
+                step = update_with(arm)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                start = time.perf_counter()
+                for data in batches[1:]:
+                    step(data)
+                if device.type == "cuda":
+                    torch.cuda.synchronize()
+                times[arm].append(1e3 * (time.perf_counter() - start) / (len(batches) - 1))
+        row = dict(settle_step=settled, tensors=len(states["eager"]),
+                   differ={arm: len(names) for arm, names in compare.items()},
+                   first_differ={arm: names[:5] for arm, names in compare.items()},
+                   ms_per_update={arm: statistics.median(t) for arm, t in times.items()},
+                   graphs=len(updates["whole"].graphs) if "whole" in updates else 0)
+        result["scripts"][name] = row
+        print(name, json.dumps(row), flush=True)
+    if cli.out:
+        with open(cli.out, "w") as f:
+            json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
