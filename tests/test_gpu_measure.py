@@ -175,3 +175,25 @@ def test_adam_capture_host_counts_move_by_one_update(tmp_path):
     assert [a - b for a, b in zip(after, before)] == [1] * len(before)
     counts.write(before)
     assert counts.read() == before
+
+
+def test_lines_of_a_tiny_run_on_the_cpu(tmp_path):
+    """The line profile: each line of the main loop and of `sac_update` and `store` is a row, named by its text; the
+    main lines and the rest add up to the step, the functions' lines being inside them."""
+    args = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--learning-starts", "100", "--unsup-steps", "100",
+            "--episode-length", "100", "--total-timesteps", "241", "--eval-freq", "10000", "--eval-episodes", "1",
+            "--hidden-dim", "32", "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-epochs", "2",
+            "--segment-size", "20", "--max-feedback", "10", "--queries-per-round", "5", "--no-cuda"]
+    out = tmp_path / "lines.csv"
+    subprocess.run([sys.executable, HELPER, "lines", str(out), "--from-step", "210", "--to-step", "240",
+                    os.path.join(ROOT, "pebble.py"), *args], cwd=tmp_path, capture_output=True, text=True,
+                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore"), timeout=120)
+    rows = list(csv.DictReader(line for line in out.read_text().splitlines() if not line.startswith("#")))
+    names = [r["item"] for r in rows]
+    assert any(n.startswith("main:") and "env.step(" in n for n in names)
+    assert any(n.startswith("sac_update:") and "agent.q_optimizer.step()" in n for n in names)
+    assert any(n.startswith("store:") and "episodes.add(" in n for n in names)  # under its torch.no_grad
+    (step,) = [r for r in rows if r["item"] == "step (whole)"]
+    assert step["calls"] == "30"
+    main = [r for r in rows if r["item"].startswith("main:") or r["item"] == "other (loop body)"]
+    assert sum(float(r["share_of_step"]) for r in main) == pytest.approx(1.0, abs=0.003)

@@ -9,6 +9,8 @@
   is an item of its own. "other (loop body)" is what is left: the loop's own lines, and the lines of `sac_update` and
   `store` outside the items they call; its median is over the steps. Only steps of the window count, and none
   holding an evaluation, a feedback round or a state write.
+- `lines`: the same run with Python's line tracer instead of the timers: each line of the main loop, of `sac_update`
+  and of `store`, timed from its start to the next line's start in its frame.
 - `rates`: the steady-state steps/s of the runs of one configuration (runs that ran at once), each over the same step
   window, from the wall times of its `losses/qf_loss` points; their sum, the rate over the wall-clock span in
   which every run was inside the window, and the rate over the span in which every run was logging (any phase).
@@ -302,8 +304,51 @@ def instrument(namespace: dict, timers: Timers):
     ene.make_env = timed_env
 
 
-def run_items(script: str, argv: list, first: int, last: int, out: str):
-    """Run `script` with `argv` in this process, its items timed, and write the table to `out` (CSV)."""
+def trace_lines(namespace: dict, timers: Timers, body, functions=("sac_update", "store")):
+    """Time each line of the main block (`body`) and of `functions`: from its start to the next line's start in the
+    same frame, its calls included. Each line is an item named by its function, number and text; the functions'
+    lines are inside their main line's time, so only the main lines add up to the step. Python's tracer adds time to
+    every line and every Python call (an env step makes hundreds), so lines read high: the ranking is the point."""
+    import inspect
+    import linecache
+
+    g = namespace
+    update = g["Progress"].update
+
+    def step_start(self, step, *args, **kwargs):
+        timers.new_step(step)
+        return update(self, step, *args, **kwargs)
+    g["Progress"].update = step_start
+    for name in ("evaluate", "feedback_round", "save_state"):
+        if name in g:
+            g[name] = timers.excluding(name, g[name])
+    # the functions' own code, under their decorators (`torch.no_grad`)
+    codes = {body: "main", **{inspect.unwrap(g[f]).__code__: f for f in functions if f in g}}
+    started = {}  # frame -> (its current line, when it started)
+
+    def local(frame, event, arg):
+        now = time.perf_counter()
+        if frame in started and timers.in_window() and not timers.blocked:
+            line, start = started[frame]
+            text = linecache.getline(frame.f_code.co_filename, line).strip()[:60]
+            label = f"{codes[frame.f_code]}:{line} {text}"
+            if frame.f_code is not body:  # inside a main line's time: not summed with the main lines
+                timers.wrappers.add(label)
+            timers.current.append((label, now - start, None))
+        if event == "return":
+            started.pop(frame, None)
+        else:
+            started[frame] = frame.f_lineno, time.perf_counter()
+        return local
+
+    def global_trace(frame, event, arg):
+        return local if frame.f_code in codes else None
+    sys.settrace(global_trace)
+
+
+def run_items(script: str, argv: list, first: int, last: int, out: str, lines: bool = False):
+    """Run `script` with `argv` in this process, its items (`lines`: its lines) timed, and write the table to `out`
+    (CSV)."""
     import torch
 
     source = open(script).read()
@@ -318,14 +363,19 @@ def run_items(script: str, argv: list, first: int, last: int, out: str):
     cuda = torch.cuda.is_available() and "--no-cuda" not in argv
     timers = Timers(first, last, cuda)
     timers.on_window_end = lambda t: write_items(t, out)
-    instrument(namespace, timers)
     offset = head.count("\n") + 1  # the main block keeps its line numbers in tracebacks
-    body = "\n" * offset + "if True:\n" + main
+    body = compile("\n" * offset + "if True:\n" + main, script, "exec")
+    if lines:
+        trace_lines(namespace, timers, body)
+    else:
+        instrument(namespace, timers)
     try:
-        exec(compile(body, script, "exec"), namespace)
+        exec(body, namespace)
     except SystemExit as e:
         if e.code not in (None, 0):
             raise
+    finally:
+        sys.settrace(None)
     if timers.on_window_end is not None:
         raise SystemExit(f"items: the run ended before step {last}")
     with open(out, "a") as f:  # the evaluations after the window too
@@ -376,6 +426,12 @@ def main():
     p.add_argument("--to-step", type=int, required=True)
     p.add_argument("script")
     p.add_argument("args", nargs=argparse.REMAINDER)
+    p = sub.add_parser("lines", help="one run, each line of its main loop, `sac_update` and `store` timed: lines.csv")
+    p.add_argument("out")
+    p.add_argument("--from-step", type=int, required=True)
+    p.add_argument("--to-step", type=int, required=True)
+    p.add_argument("script")
+    p.add_argument("args", nargs=argparse.REMAINDER)
     p = sub.add_parser("rates", help="the steady-state rates of one configuration: a row of aggregate.csv")
     p.add_argument("config_dir")
     p.add_argument("out")
@@ -395,8 +451,8 @@ def main():
     p.add_argument("junit")
     p.add_argument("out")
     args = parser.parse_args()
-    if args.part == "items":
-        run_items(args.script, args.args, args.from_step, args.to_step, args.out)
+    if args.part in ("items", "lines"):
+        run_items(args.script, args.args, args.from_step, args.to_step, args.out, lines=args.part == "lines")
     elif args.part == "rates":
         runs = {os.path.basename(r): points(r) for r in sorted(glob.glob(os.path.join(args.config_dir, "runs", "*")))}
         result = window_rates(runs, args.from_step, args.to_step)

@@ -6,14 +6,17 @@
 #   items      host and GPU microseconds of each step item of a captured run (measure.py items) -> items.csv
 #   adam       one graph per SAC update, Adam inside, once its scalars settle: bit for bit against eager, and the
 #              milliseconds per update of eager, today's --cuda-graph and the whole capture (adam_capture.py) -> adam.json
-#   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt
+#   lines      each line of the main loop, `sac_update` and `store`, timed (measure.py lines) -> lines.csv (not run
+#              unless PARTS names it)
+#   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt (not run
+#              unless PARTS names it: its question was answered with --tf32)
 #   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
 #   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
 #   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide
 #              -> aggregate.csv (one row per configuration, written as each ends)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
-# PARTS="items window": only these parts, in the order PARTS lists them (default: all, in the order above).
+# PARTS="items window": only these parts, in the order PARTS lists them (default: items adam exact window aggregate).
 # EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them); of them, the actor
 # part takes --tf32.
 set -u
@@ -49,7 +52,7 @@ if [ "$dry" = "--dry-run" ]; then
   exact_workers=1
   actor_flags=(--hidden-dim 32 --batch-size 32 --repeats 5)
   adam_flags=(--device cpu --hidden-dim 32 --batch-size 32 --updates 20 --blocks 1)
-  budget_items=120 budget_adam=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
+  budget_items=120 budget_lines=120 budget_adam=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
   declare -A config_budget=([x2]=70)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
@@ -70,17 +73,18 @@ else
   actor_flags=(--cuda --repeats 30)
   adam_flags=(--device cuda --updates 300 --blocks 5)  # the paper's size: 1024 wide, batch 1024
   # adam: 2 scripts x 3 arms x 6 passes of 300 updates, at most about 4 ms each, plus the imports
-  budget_items=45 budget_adam=45 budget_actor=20 budget_exact=160 budget_window=115 budget_aggregate=185
+  budget_items=45 budget_lines=45 budget_adam=45 budget_actor=20 budget_exact=160 budget_window=115
+  budget_aggregate=205
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
-parts=(${PARTS:-items adam actor exact window aggregate})
+parts=(${PARTS:-items adam exact window aggregate})
 total=0
 plan=""
 for part in "${parts[@]}"; do
   budget="budget_$part"
-  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items adam actor exact window aggregate)"; exit 2; }
+  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items lines adam actor exact window aggregate)"; exit 2; }
   total=$((total + ${!budget}))
   plan+="$part ${!budget} s, "
 done
@@ -138,6 +142,15 @@ part_items() {
     "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
   wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
   [ -f "$out/items.csv" ] && cat "$out/items.csv"
+}
+
+part_lines() {
+  mkdir -p "$work/lines"
+  (cd "$work/lines" && exec timeout -s KILL "$budget_lines" "$py" "$helper" lines "$out/lines.csv" \
+    --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
+    "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name lines > lines.log 2>&1) &
+  wait $! || echo "lines: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/lines/lines.log")"
+  [ -f "$out/lines.csv" ] && cat "$out/lines.csv"
 }
 
 part_adam() {
