@@ -1781,3 +1781,68 @@ def test_stored_table_pilot_decisions_follow_the_protocol_rules(tmp_path, monkey
     assert power.report("cartpole-swingup", 0.315) == [
         "## cartpole-swingup: 4 of 5 pilot runs are in (missing: sac_stored_noise__cartpole-swingup__noise0.9__budgetnone"
         "__seed901)"]
+
+
+def stored_table_module(name):
+    """results/stored-table/{name}.py, imported (table.py imports power.py beside it)."""
+    sys.path.insert(0, os.path.join(ROOT, "results", "stored-table"))
+    spec = importlib.util.spec_from_file_location(f"stored_table_{name}",
+                                                  os.path.join(ROOT, "results", "stored-table", f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monkeypatch):
+    """table.py: a task's row waits for its pilot, then for all its primary runs, then gives analyze.py's statistics
+    and the power for the pilot's effect of interest; Holm's correction runs over the powered tasks only."""
+    table = stored_table_module("table")
+    power = table.power
+    monkeypatch.setattr(power, "PILOT", str(tmp_path / "pilot"))
+    monkeypatch.setattr(table, "RUNS", str(tmp_path / "runs"))
+    monkeypatch.setattr(power, "stored_noise_cv", lambda: 0.315)
+    steps = list(range(10_000, 250_001, 10_000))
+    flat = lambda first, end: [first] + [end] * (len(steps) - 1)  # noqa: E731
+
+    def run(folder, task, method, seed, end):
+        noise, budget = table.TASKS[task][:2]
+        budget_id = "none" if method.startswith(("sac", "anf_sac")) else budget
+        name = f"{method}__{task}__noise{noise:g}__budget{budget_id}__seed{seed}"
+        os.makedirs(folder, exist_ok=True)
+        written = write_run(folder, task, noise, budget, method, seed, flat(100.0, end), steps=steps)
+        os.replace(written, os.path.join(folder, name))
+        open(os.path.join(folder, name, "done"), "w").close()
+
+    task = "quadruped-walk"  # d = 0.668 / (2 x 0.315) = 1.06: powered
+    assert next(r for r in table.rows() if r["task"] == task)["plan"] is None  # the pilot is not in
+    for method, seed, end in (("pebble_stored_noise", 901, 300.0), ("pebble_stored_noise", 902, 340.0),
+                              ("r2n_pebble_stored_noise", 901, 400.0), ("sac_stored_noise", 901, 200.0),
+                              ("anf_sac_stored_noise", 901, 500.0)):
+        run(str(tmp_path / "pilot"), task, method, seed, end)
+    plan = power.plan(task, 0.315)
+    assert plan["kind"] == "powered" and plan["effect"] == pytest.approx((309.33 / 185.41 - 1) / 2 * 320.0)
+    pebble = [250.0 + 10 * s for s in range(1, plan["n"] + 1)]
+    r2n = [300.0 + 12 * s for s in range(1, plan["n"] + 1)]
+    for seed, (p, r) in enumerate(zip(pebble, r2n), start=1):
+        run(str(tmp_path / "runs"), task, "pebble_stored_noise", seed, p)
+        if seed > 1:
+            run(str(tmp_path / "runs"), task, "r2n_pebble_stored_noise", seed, r)
+    row = next(r for r in table.rows() if r["task"] == task)
+    assert "arms" not in row and row["runs_in"] == 2 * plan["n"] - 1
+    assert f"| {2 * plan['n'] - 1} of {2 * plan['n']} runs in |" in "\n".join(table.table_lines([row]))
+    run(str(tmp_path / "runs"), task, "r2n_pebble_stored_noise", 1, r2n[0])
+    row = next(r for r in table.rows() if r["task"] == task)
+    assert row["welch"] == analyze.welch_p(np.array(r2n), np.array(pebble))
+    assert row["ci"] == analyze.bootstrap_ci(np.array(r2n), np.array(pebble))
+    sd = np.sqrt((np.var(r2n, ddof=1) + np.var(pebble, ddof=1)) / 2)
+    assert row["power"] == pytest.approx(analyze.power(plan["effect"], sd, plan["n"]))
+    assert "holm" not in row  # the other tasks' pilots are not in: Holm's family is not known yet
+    line = table.table_lines([row])[-1]
+    assert f"| {np.mean(pebble):.1f} ± {np.std(pebble, ddof=1) / np.sqrt(plan['n']):.1f} ({plan['n']}) |" in line
+    assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
+
+
+def test_stored_table_table_is_what_the_committed_runs_give():
+    """The committed table.md and the README's table block regenerate from the committed event files."""
+    subprocess.run([sys.executable, os.path.join(ROOT, "results", "stored-table", "table.py"), "--check"],
+                   check=True, cwd=ROOT, capture_output=True, text=True)

@@ -73,12 +73,36 @@ def run_folder(task: str, method: str, seed: int) -> str:
     return os.path.join(PILOT, f"{method}__{task}__noise{noise:g}__budget{budget_id}__seed{seed}")
 
 
-def report(task: str, study_cv: float) -> list:
-    """The task's lines, or one line naming the pilot runs still missing."""
-    noise, budget, paper_pebble, paper_r2n = TASKS[task]
+def pilot_runs(task: str) -> dict:
+    """(method, seed) -> run folder, for the task's 5 pilot runs."""
     runs = {(m, 901): run_folder(task, m, 901) for m in ARMS}
     runs[("pebble_stored_noise", 902)] = run_folder(task, "pebble_stored_noise", 902)
-    missing = [os.path.basename(f) for f in runs.values() if not os.path.exists(os.path.join(f, "done"))]
+    return runs
+
+
+def missing_runs(task: str) -> list:
+    return [os.path.basename(f) for f in pilot_runs(task).values() if not os.path.exists(os.path.join(f, "done"))]
+
+
+def plan(task: str, study_cv: float) -> dict:
+    """Rules 3 to 5 from the task's two pilot PEBBLE runs: the spread, the effect (in points too) and the seeds."""
+    paper_pebble, paper_r2n = TASKS[task][2:]
+    runs = pilot_runs(task)
+    pebble = np.array([primary(curve(runs[("pebble_stored_noise", s)])[1]) for s in (901, 902)])
+    pilot_cv = float(np.std(pebble, ddof=1) / pebble.mean())
+    cv = max(pilot_cv, study_cv)
+    gain = paper_r2n / paper_pebble - 1
+    d = gain / (2 * cv)
+    n, achieved, kind = seeds_for(d)
+    return dict(pebble=pebble, pilot_cv=pilot_cv, cv=cv, gain=gain, d=d, effect=gain / 2 * pebble.mean(), n=n,
+                power=achieved, kind=kind)
+
+
+def report(task: str, study_cv: float) -> list:
+    """The task's lines, or one line naming the pilot runs still missing."""
+    noise, budget = TASKS[task][:2]
+    runs = pilot_runs(task)
+    missing = missing_runs(task)
     if missing:
         return [f"## {task}: {len(runs) - len(missing)} of {len(runs)} pilot runs are in (missing: {', '.join(missing)})"]
     curves = {key: curve(folder) for key, folder in runs.items()}
@@ -87,21 +111,17 @@ def report(task: str, study_cv: float) -> list:
     for (method, seed), (steps, returns) in curves.items():
         lines.append(f"| {method} seed {seed} | {returns[0]:.1f} | {primary(returns):.1f} | "
                      f"{'yes' if learns(steps, returns) else 'no'} |")
-    pebble = np.array([primary(curves[("pebble_stored_noise", s)][1]) for s in (901, 902)])
-    pilot_cv = float(np.std(pebble, ddof=1) / pebble.mean())
-    cv = max(pilot_cv, study_cv)
-    gain = paper_r2n / paper_pebble - 1
-    d = gain / (2 * cv)
-    n, achieved, kind = seeds_for(d)
+    decided = plan(task, study_cv)
+    pebble = decided["pebble"]
     oracle = learns(*curves[("anf_sac_stored_noise", 901)])
     lines += [
         "",
         f"- Stop rule (2): anf_sac_stored_noise {'learns' if oracle else 'does NOT learn: look for a bug first'}.",
-        f"- Spread (3): pilot CV {pilot_cv:.3f} (PEBBLE {pebble[0]:.1f} and {pebble[1]:.1f}), stored-noise study CV "
-        f"{study_cv:.3f}: CV = {cv:.3f}.",
-        f"- Effect (4): g = {gain:.4f}, half of it on the pilot PEBBLE's mean {pebble.mean():.1f} is "
-        f"{gain / 2 * pebble.mean():.1f} points; d = {d:.3f}.",
-        f"- Seeds (5): {n} per arm, power {achieved:.2f}: {kind}.",
+        f"- Spread (3): pilot CV {decided['pilot_cv']:.3f} (PEBBLE {pebble[0]:.1f} and {pebble[1]:.1f}), stored-noise "
+        f"study CV {study_cv:.3f}: CV = {decided['cv']:.3f}.",
+        f"- Effect (4): g = {decided['gain']:.4f}, half of it on the pilot PEBBLE's mean {pebble.mean():.1f} is "
+        f"{decided['effect']:.1f} points; d = {decided['d']:.3f}.",
+        f"- Seeds (5): {decided['n']} per arm, power {decided['power']:.2f}: {decided['kind']}.",
     ]
     if task == "cartpole-swingup":
         level = []

@@ -1,0 +1,182 @@
+"""The study's table for users (issue 41), from the committed event files: per task, the paper's PEBBLE and R2N-PEBBLE,
+ours, the difference with its CI, p and the power achieved, and the gains in percent; and the tasks' curves side by
+side.
+
+    python results/stored-table/table.py          # writes table.md and curves.png, and the README's table block
+    python results/stored-table/table.py --check  # exit 1 if table.md or the README block is not what the runs give
+
+Cheetah-run's row is the stored-noise study's, as committed (its own protocol, 8 seeds per arm, its effect of interest
+79.4). The other tasks' rows come from their primary runs (`runs/`, PROTOCOL.md part 2) once all of them are in; before
+that a row says how many are in. Statistics as `analyze.py`'s tables: the primary metric (the mean of a run's last 3
+evaluations), mean ± SE over seeds, the one-tailed Welch p of R2N-PEBBLE > PEBBLE, the exact permutation p and the
+percentile bootstrap 95% CI of the difference, each with `analyze.py`'s functions and seeds. The power achieved is that
+of the test for the task's effect of interest (half the paper's relative gain on the pilot PEBBLE's mean, PROTOCOL.md
+rule 4) at the achieved pooled SD and seeds (`analyze.power`). Holm's correction runs over this study's powered tasks
+(the cheetah row's test was its own study's) once all of them are in.
+"""
+import argparse
+import glob
+import os
+import sys
+
+import numpy as np
+
+STUDY = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, STUDY)
+import power  # noqa: E402 (the pilot's plan per task, the run reading)
+from power import analyze  # noqa: E402
+
+RUNS = os.path.join(STUDY, "runs")
+METHODS = ("pebble_stored_noise", "r2n_pebble_stored_noise")
+# task -> (noise, budget, paper PEBBLE, paper R2N-PEBBLE), in the paper's order
+TASKS = dict(list(power.TASKS.items())[:2] + [("cheetah-run", (0.9, 1000, 237.62, 404.59))]
+             + list(power.TASKS.items())[2:])
+CHEETAH = dict(folder=power.STORED_NOISE, n=8, kind="powered", effect=79.4)  # results/stored-noise/PROTOCOL.md
+MARKERS = ("<!-- table.py: start -->", "<!-- table.py: end -->")
+README = os.path.join(STUDY, "README.md")
+
+
+def task_plan(task: str, study_cv: float):
+    """(folder, seeds per arm, powered or exploratory, effect of interest), or None while the pilot is not in."""
+    if task == "cheetah-run":
+        return CHEETAH
+    if power.missing_runs(task):
+        return None
+    decided = power.plan(task, study_cv)
+    return dict(folder=RUNS, n=decided["n"], kind=decided["kind"], effect=decided["effect"])
+
+
+def arm_folders(folder: str, method: str, task: str) -> list:
+    noise, budget = TASKS[task][:2]
+    pattern = os.path.join(folder, f"{method}__{task}__noise{noise:g}__budget{budget}__seed*")
+    return sorted((f for f in glob.glob(pattern) if os.path.exists(os.path.join(f, "done"))), key=analyze.natural_order)
+
+
+def holm(pvalues: dict) -> dict:
+    """Holm's step-down adjusted p-values."""
+    order = sorted(pvalues, key=pvalues.get)
+    adjusted, running = {}, 0.0
+    for i, name in enumerate(order):
+        running = max(running, min(1.0, (len(order) - i) * pvalues[name]))
+        adjusted[name] = running
+    return adjusted
+
+
+def rows() -> list:
+    study_cv = power.stored_noise_cv()
+    out = []
+    for task, (noise, budget, paper_pebble, paper_r2n) in TASKS.items():
+        row = dict(task=task, noise=noise, budget=budget, paper=(paper_pebble, paper_r2n),
+                   paper_gain=paper_r2n / paper_pebble - 1, plan=task_plan(task, study_cv))
+        if row["plan"] is not None:
+            folders = {m: arm_folders(row["plan"]["folder"], m, task) for m in METHODS}
+            row["runs_in"] = sum(map(len, folders.values()))
+            if all(len(f) == row["plan"]["n"] for f in folders.values()):
+                row["curves"] = {m: [power.curve(f) for f in fs] for m, fs in folders.items()}
+                row["arms"] = {m: np.array([power.primary(c[1]) for c in cs]) for m, cs in row["curves"].items()}
+        out.append(row)
+    powered = {r["task"]: r for r in out if r["task"] != "cheetah-run" and r["plan"] and r["plan"]["kind"] == "powered"}
+    for r in out:
+        if "arms" in r:
+            r2n, pebble = r["arms"]["r2n_pebble_stored_noise"], r["arms"]["pebble_stored_noise"]
+            r["welch"] = analyze.welch_p(r2n, pebble)
+            r["permutation"] = analyze.permutation_p(r2n, pebble)[0]
+            r["ci"] = analyze.bootstrap_ci(r2n, pebble)
+            sd = float(np.sqrt((np.var(r2n, ddof=1) + np.var(pebble, ddof=1)) / 2))
+            r["power"] = analyze.power(r["plan"]["effect"], sd, len(pebble))
+    # Holm's family is known once every task's pilot has said whether it is powered
+    if powered and all(r["plan"] for r in out) and all("arms" in r for r in powered.values()):
+        for task, p in holm({t: r["welch"] for t, r in powered.items()}).items():
+            powered[task]["holm"] = p
+    return out
+
+
+def percent(x: float) -> str:
+    return f"{100 * x:+.1f}%"
+
+
+def table_lines(out: list) -> list:
+    lines = [
+        "| task | noise / budget | paper: PEBBLE | paper: R2N-PEBBLE | paper's gain | ours: PEBBLE | ours: R2N-PEBBLE "
+        "| difference [95% CI] | our gain | Welch p (Holm) | permutation p | power achieved | test |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in out:
+        head = (f"| {r['task']} | {r['noise']:g} / {r['budget']} | {r['paper'][0]:.2f} | {r['paper'][1]:.2f} "
+                f"| {percent(r['paper_gain'])} ")
+        plan = r["plan"]
+        if plan is None:
+            lines.append(head + "| pilot under way | | | | | | | |")
+            continue
+        kind = ("powered, the stored-noise study's" if r["task"] == "cheetah-run" else plan["kind"])
+        if "arms" not in r:
+            lines.append(head + f"| {r['runs_in']} of {2 * plan['n']} runs in | | | | | | | {kind}, "
+                         f"{plan['n']} seeds per arm |")
+            continue
+        (pm, ps), (rm, rs) = (analyze.mean_se(r["arms"][m]) for m in METHODS)
+        n = len(r["arms"][METHODS[0]])
+        holm_p = f" ({r['holm']:.3f})" if "holm" in r else ""
+        lines.append(head + f"| {pm:.1f} ± {ps:.1f} ({n}) | {rm:.1f} ± {rs:.1f} ({n}) "
+                     f"| {rm - pm:+.1f} [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}] | {percent(rm / pm - 1)} "
+                     f"| {r['welch']:.3f}{holm_p} | {r['permutation']:.3f} | {r['power']:.2f} "
+                     f"(for {plan['effect']:+.1f}) | {kind} |")
+    return lines
+
+
+def write_curves(out: list, path: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(out), figsize=(4 * len(out), 3.4), squeeze=False)
+    for ax, r in zip(axes[0], out):
+        ax.set_title(f"{r['task']} {r['noise']:g}/{r['budget']}", fontsize=10)
+        ax.set_xlabel("steps")
+        if "curves" not in r:
+            ax.text(0.5, 0.5, "pending", ha="center", va="center", transform=ax.transAxes)
+            continue
+        for method, colour in zip(METHODS, ("tab:blue", "tab:red")):
+            curves = r["curves"][method]
+            steps = curves[0][0]
+            values = np.array([c[1][: len(steps)] for c in curves])
+            mean, se = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
+            ax.plot(steps, mean, color=colour, label=f"{method} ({len(values)})")
+            ax.fill_between(steps, mean - se, mean + se, color=colour, alpha=0.2)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("evaluation return (mean ± SE)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def readme_with(block: list) -> str:
+    text = open(README).read()
+    start, end = text.index(MARKERS[0]), text.index(MARKERS[1])
+    return text[: start + len(MARKERS[0])] + "\n" + "\n".join(block) + "\n" + text[end:]
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--check", action="store_true", help="compare with the committed table.md and README block")
+    out = rows()
+    block = table_lines(out)
+    table_path = os.path.join(STUDY, "table.md")
+    if parser.parse_args().check:
+        stale = [path for path, text in ((table_path, "\n".join(block) + "\n"), (README, readme_with(block)))
+                 if not os.path.exists(path) or open(path).read() != text]
+        if stale:
+            raise SystemExit(f"not what the runs give: {', '.join(map(os.path.relpath, stale))}; "
+                             "regenerate with python results/stored-table/table.py")
+        print("table.md and the README block are what the runs give")
+        return
+    readme = readme_with(block)  # read before the file is opened for writing
+    with open(table_path, "w") as f:
+        f.write("\n".join(block) + "\n")
+    with open(README, "w") as f:
+        f.write(readme)
+    write_curves(out, os.path.join(STUDY, "curves.png"))
+    print("\n".join(block))
+
+
+if __name__ == "__main__":
+    main()
