@@ -197,3 +197,23 @@ def test_lines_of_a_tiny_run_on_the_cpu(tmp_path):
     assert step["calls"] == "30"
     main = [r for r in rows if r["item"].startswith("main:") or r["item"] == "other (loop body)"]
     assert sum(float(r["share_of_step"]) for r in main) == pytest.approx(1.0, abs=0.003)
+
+
+def test_act_store_capture_functions_are_todays_numerics_on_the_cpu(monkeypatch):
+    """The two functions the act and store graphs replay, run eagerly on the CPU, give the scripts' actions, buffers,
+    episode store and generator state bit for bit; a store that skips one write is caught."""
+    import act_store_capture
+    import torch
+
+    sys.path.insert(0, ROOT)
+    run = lambda: act_store_capture.measure("pebble", torch.device("cpu"), 16, 50, 120, 1)  # noqa: E731
+    same = run()["bitwise"]
+    assert same == {"actions": True, "storage": [True] * 8, "rng": True}
+    store_step = act_store_capture.Graphs.store_step
+
+    def without_true_reward(self):
+        saved = self.s.rb.true_rewards.clone()
+        store_step(self)
+        self.s.rb.true_rewards.copy_(saved)
+    monkeypatch.setattr(act_store_capture.Graphs, "store_step", without_true_reward)
+    assert run()["bitwise"]["storage"] == [True] * 4 + [False] + [True] * 3

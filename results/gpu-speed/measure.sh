@@ -6,6 +6,8 @@
 #   items      host and GPU microseconds of each step item of a captured run (measure.py items) -> items.csv
 #   adam       one graph per SAC update, Adam inside, once its scalars settle: bit for bit against eager, and the
 #              milliseconds per update of eager, today's --cuda-graph and the whole capture (adam_capture.py) -> adam.json
+#   act_store  acting and storing as two graphs, one pinned copy each way: bit for bit against eager, host µs per
+#              step of each (act_store_capture.py) -> act_store.json
 #   lines      each line of the main loop, `sac_update` and `store`, timed (measure.py lines) -> lines.csv (not run
 #              unless PARTS names it)
 #   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt (not run
@@ -16,7 +18,8 @@
 #              -> aggregate.csv (one row per configuration, written as each ends)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
-# PARTS="items window": only these parts, in the order PARTS lists them (default: items adam exact window aggregate).
+# PARTS="items window": only these parts, in the order PARTS lists them (default: items adam act_store exact window
+# aggregate).
 # EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them); of them, the actor
 # part takes --tf32.
 set -u
@@ -52,7 +55,8 @@ if [ "$dry" = "--dry-run" ]; then
   exact_workers=1
   actor_flags=(--hidden-dim 32 --batch-size 32 --repeats 5)
   adam_flags=(--device cpu --hidden-dim 32 --batch-size 32 --updates 20 --blocks 1)
-  budget_items=120 budget_lines=120 budget_adam=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
+  act_store_flags=(--device cpu --hidden-dim 32 --steps 200 --episode-length 100 --blocks 1)
+  budget_items=120 budget_lines=120 budget_adam=60 budget_act_store=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
   declare -A config_budget=([x2]=70)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
@@ -65,26 +69,29 @@ else
   agg_steps=(2200 2500)
   agg_total=2501  # one evaluation, at the end, after the window
   # the most telling first: a call cut off still compares 8 runs without and with MPS, and has 8 at 256 wide
-  configs=("no x8 8" "yes x8 8" "yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "no x4 4" "yes x4 4" "yes x1 1")
+  # the issue's target first (8 runs at 256 wide with MPS), then 8 at the paper's size with and without MPS
+  configs=("yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "yes x8 8" "no x8 8" "no x4 4" "yes x4 4" "yes x1 1")
   exact_workers=16
   # from the H100's first call (h100-2026-11-26/measure.log): items took 34 s, the window 103 s, the aggregate's
   # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers; in the second
   # session (after the actor change, a slower host) 144 s on 16 workers, and the window its whole 115 s
   actor_flags=(--cuda --repeats 30)
   adam_flags=(--device cuda --updates 300 --blocks 5)  # the paper's size: 1024 wide, batch 1024
+  act_store_flags=(--device cuda --steps 2000 --blocks 3)  # 8 000 steps per arm at about 1 ms each
   # adam: 2 scripts x 3 arms x 6 passes of 300 updates, at most about 4 ms each, plus the imports
-  budget_items=45 budget_lines=45 budget_adam=45 budget_actor=20 budget_exact=160 budget_window=115
-  budget_aggregate=205
+  budget_items=45 budget_lines=45 budget_adam=45 budget_act_store=35 budget_actor=20 budget_exact=160
+  budget_window=115 budget_aggregate=170
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
-parts=(${PARTS:-items adam exact window aggregate})
+parts=(${PARTS:-items adam act_store exact window aggregate})
 total=0
 plan=""
 for part in "${parts[@]}"; do
   budget="budget_$part"
-  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items lines adam actor exact window aggregate)"; exit 2; }
+  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items lines adam act_store actor exact window aggregate)"
+    exit 2; }
   total=$((total + ${!budget}))
   plan+="$part ${!budget} s, "
 done
@@ -158,6 +165,13 @@ part_adam() {
     --out "$out/adam.json" > "$work/adam.log" 2>&1) &
   wait $! || echo "adam: exit $? (137: cut off at its budget)"
   cat "$work/adam.log"
+}
+
+part_act_store() {
+  (cd "$root" && exec timeout -s KILL "$budget_act_store" "$py" results/gpu-speed/act_store_capture.py \
+    "${act_store_flags[@]}" --out "$out/act_store.json" > "$work/act_store.log" 2>&1) &
+  wait $! || echo "act_store: exit $? (137: cut off at its budget)"
+  cat "$work/act_store.log"
 }
 
 part_actor() {
