@@ -217,3 +217,22 @@ def test_act_store_capture_functions_are_todays_numerics_on_the_cpu(monkeypatch)
         self.s.rb.true_rewards.copy_(saved)
     monkeypatch.setattr(act_store_capture.Graphs, "store_step", without_true_reward)
     assert run()["bitwise"]["storage"] == [True] * 4 + [False] + [True] * 3
+
+
+def test_adam_capture_gathers_are_the_samples_batch():
+    """The gathers that the whole-update graph holds give `ReplayBuffer.sample`'s batch, bit for bit, when the indices
+    are drawn as `sample` draws them."""
+    import adam_capture
+    import torch
+
+    sys.path.insert(0, ROOT)
+    import pebble
+
+    rb = pebble.ReplayBuffer(50, 5, 2, torch.device("cpu"))
+    for _ in range(40):
+        rb.add(torch.randn(5), torch.rand(2), torch.randn(5), False, 0.5, torch.randn(()))
+    torch.manual_seed(3)
+    sampled = rb.sample(8)
+    torch.manual_seed(3)
+    batch = adam_capture.gathered(pebble, rb, torch.randint(0, rb.size, (8,)))
+    assert all(torch.equal(a, b) for a, b in zip(sampled, batch))

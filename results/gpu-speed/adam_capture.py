@@ -10,13 +10,15 @@ during a replay: the capture's own moves are undone, and each replay applies the
 
     python results/gpu-speed/adam_capture.py --device cuda [--script pebble] [--hidden-dim 1024 --batch-size 1024]
 
-Three arms, each on an agent built from the same seed, each fed the same batches: `eager` (the scripts' `sac_update`),
-`parts` (today's `--cuda-graph`: the three gradient steps captured, the optimiser steps eager; CUDA only) and `whole`
-(one graph per update and per branch pattern, after `--warmup` eager updates). Every optimiser's step count starts at
-the settle step (as in a run past its first 16 6xx updates). Prints and writes (`--out`) the bit-for-bit comparison
-of every parameter, Adam moment and step count against `eager`, and the median milliseconds per update of each arm over
-interleaved blocks. On the CPU, `whole` runs its updates eagerly through the same host bookkeeping: a check of the
-harness, not of a graph.
+Four arms, each on an agent built from the same seed, sampling the same random replay buffer with the same RNG stream:
+`eager` (the scripts' `sac_update` on `rb.sample`), `parts` (today's `--cuda-graph`: the three gradient steps
+captured, the optimiser steps eager; CUDA only), `whole` (one graph per update and per branch pattern, after
+`--warmup` eager updates, the sampled batch copied in) and `gather` (the same with the batch's gathers inside the
+graph: only the indices are drawn eagerly, as `sample` draws them, so the random stream is unchanged). Every
+optimiser's step count starts at the settle step (as in a run past its first 16 6xx updates). Prints and writes
+(`--out`) the bit-for-bit comparison of every parameter, Adam moment and step count against `eager`, and the median
+milliseconds per update of each arm over interleaved blocks. On the CPU, `whole` and `gather` run their updates
+eagerly through the same host bookkeeping: a check of the harness and of the gathers, not of a graph.
 """
 import argparse
 import importlib
@@ -82,11 +84,23 @@ class HostCounts:
             t.fill_(v)
 
 
-class WholeUpdate:
-    """`sac_update` as one graph per branch pattern (actor due, target due), after `warmup` eager updates."""
+def gathered(module, rb, idx: torch.Tensor):
+    """`ReplayBuffer.sample`'s batch at the indices `idx` (its gathers, after its index draw): what a graph holds when
+    the sampled indices stay eager (tests/test_gpu_measure.py checks it against `sample`)."""
+    return module.Batch(module.read_noisy(rb.obs[idx], rb.noise), rb.actions[idx], rb.rewards[idx],
+                        module.read_noisy(rb.next_obs[idx], rb.noise), rb.dones[idx], idx)
 
-    def __init__(self, module, agent, loop, args, device, warmup: int):
-        self.module, self.agent, self.loop, self.args, self.device = module, agent, loop, args, device
+
+def tensors(x) -> list:
+    return list(x) if isinstance(x, tuple) else [x]
+
+
+class WholeUpdate:
+    """`update(x)` (one SAC update from its input: a batch, or the sampled indices when the gathers are inside) as one
+    graph per branch pattern (actor due, target due), after `warmup` eager updates."""
+
+    def __init__(self, update, agent, loop, args, device, warmup: int):
+        self.update, self.agent, self.loop, self.args, self.device = update, agent, loop, args, device
         self.warmup, self.calls, self.graphs, self.counts = warmup, 0, {}, HostCounts(agent, loop)
         for adam in adams(agent):  # the scalars are the same at every replay: see settle_step
             adam._accelerator_graph_capture_health_check = lambda: None
@@ -100,29 +114,29 @@ class WholeUpdate:
         """RigL's steps stay eager: an update that holds one runs eagerly."""
         return any(o.sparsity and (o.steps + 1) % o.period == 0 for o in self.counts.sparse)
 
-    def __call__(self, data):
+    def __call__(self, x):
         self.calls += 1
         if self.device.type != "cuda" or self.topology_due():
-            return self.module.sac_update(self.agent, data, self.loop, self.args)
+            return self.update(x)
         if self.calls <= self.warmup:  # on a side stream, as a capture asks
             side = torch.cuda.Stream()
             side.wait_stream(torch.cuda.current_stream())
             with torch.cuda.stream(side):
-                self.module.sac_update(self.agent, data, self.loop, self.args)
+                self.update(x)
             torch.cuda.current_stream().wait_stream(side)
             return
         key = self.key()
         if key not in self.graphs:
-            static = type(data)(*map(torch.clone, data))
+            static = type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
             before = self.counts.read()
             graph = torch.cuda.CUDAGraph()
             with torch.cuda.graph(graph):
-                self.module.sac_update(self.agent, static, self.loop, self.args)
+                self.update(static)
             after = self.counts.read()
             self.counts.write(before)  # the capture ran no kernel: its host moves are undone
             self.graphs[key] = graph, static, [a - b for a, b in zip(after, before)]
         graph, static, delta = self.graphs[key]
-        torch._foreach_copy_(list(static), list(data))
+        torch._foreach_copy_(tensors(static), tensors(x))
         graph.replay()
         self.counts.write([v + d for v, d in zip(self.counts.read(), delta)])
 
@@ -155,6 +169,7 @@ def main():
     parser.add_argument("--hidden-dim", type=int, default=1024)
     parser.add_argument("--batch-size", type=int, default=1024)
     parser.add_argument("--updates", type=int, default=300)
+    parser.add_argument("--buffer-size", type=int, default=20_000, help="a replay buffer of random rows to sample")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--blocks", type=int, default=5, help="timing: interleaved blocks of `--updates` each")
     parser.add_argument("--out", default=None)
@@ -168,48 +183,49 @@ def main():
     for name in cli.scripts:
         module = importlib.import_module(name)
         args = module.Args(hidden_dim=cli.hidden_dim, batch_size=cli.batch_size)
+        rb = module.ReplayBuffer(cli.buffer_size, OBS_DIM, ACT_DIM, device)
         generator = torch.Generator().manual_seed(1)
-        batches = [module.Batch(torch.randn(cli.batch_size, OBS_DIM, generator=generator),
-                                torch.rand(cli.batch_size, ACT_DIM, generator=generator) * 2 - 1,
-                                torch.randn(cli.batch_size, generator=generator),
-                                torch.randn(cli.batch_size, OBS_DIM, generator=generator),
-                                torch.zeros(cli.batch_size), torch.arange(cli.batch_size))
-                   for _ in range(cli.updates)]
-        batches = [module.Batch(*(t.to(device) for t in b)) for b in batches]
-        arms = ["eager", "whole"] + (["parts"] if device.type == "cuda" else [])
-        agents, loops, updates = {}, {}, {}
+        for stored in (rb.obs, rb.next_obs, rb.rewards):
+            stored.copy_(torch.randn(stored.shape, generator=generator))
+        rb.actions.copy_(torch.rand(rb.actions.shape, generator=generator) * 2 - 1)
+        rb.pos, rb.size = 0, cli.buffer_size
+        arms = ["eager", "whole", "gather"] + (["parts"] if device.type == "cuda" else [])
+        agents, loops, steps = {}, {}, {}
         for arm in arms:
             torch.manual_seed(0)
             agents[arm], loops[arm] = module.make_agent(OBS_DIM, ACT_DIM, args, device), module.Loop()
-            module.sac_update(agents[arm], batches[0], loops[arm], args)  # Adam's state exists from here
+            module.sac_update(agents[arm], rb.sample(cli.batch_size), loops[arm], args)  # Adam's state from here
             settled = agent_settle_step(agents[arm])
             set_steps(agents[arm], settled)
         saved = {n: getattr(module, n) for n in ("critic_gradients", "actor_gradients", "target_update")}
         graphs = {n: module.CudaGraph(f) for n, f in saved.items()} if "parts" in arms else {}
 
-        def update_with(arm):
-            if arm == "whole":
-                return updates.setdefault(arm, WholeUpdate(module, agents[arm], loops[arm], args, device,
-                                                           cli.warmup))
-            if arm == "parts":
-                def parts(data):
-                    for n, g in graphs.items():
-                        setattr(module, n, g)
-                    try:
-                        module.sac_update(agents[arm], data, loops[arm], args)
-                    finally:
-                        for n, f in saved.items():
-                            setattr(module, n, f)
-                return parts
-            return lambda data: module.sac_update(agents[arm], data, loops[arm], args)
+        def eager(arm):
+            return lambda: module.sac_update(agents[arm], rb.sample(cli.batch_size), loops[arm], args)
 
-        # the comparison: the same seed's RNG stream for every arm, over the same batches
+        def parts():
+            for n, g in graphs.items():
+                setattr(module, n, g)
+            try:
+                module.sac_update(agents["parts"], rb.sample(cli.batch_size), loops["parts"], args)
+            finally:
+                for n, f in saved.items():
+                    setattr(module, n, f)
+
+        whole = WholeUpdate(lambda data: module.sac_update(agents["whole"], data, loops["whole"], args),
+                            agents["whole"], loops["whole"], args, device, cli.warmup)
+        gather = WholeUpdate(lambda idx: module.sac_update(agents["gather"], gathered(module, rb, idx),
+                                                           loops["gather"], args),
+                             agents["gather"], loops["gather"], args, device, cli.warmup)
+        steps = dict(eager=eager("eager"), parts=parts, whole=lambda: whole(rb.sample(cli.batch_size)),
+                     # the indices drawn eagerly, as `sample` draws them: the random stream is unchanged
+                     gather=lambda: gather(torch.randint(0, rb.size, (cli.batch_size,), device=device)))
+        # the comparison: the same seed's RNG stream for every arm
         states = {}
         for arm in arms:
             torch.manual_seed(2)
-            step = update_with(arm)
-            for data in batches[1:]:
-                step(data)
+            for _ in range(cli.updates):
+                steps[arm]()
             if device.type == "cuda":
                 torch.cuda.synchronize()
             states[arm] = snapshot(agents[arm])
@@ -218,20 +234,19 @@ def main():
         times = {arm: [] for arm in arms}
         for _ in range(cli.blocks):
             for arm in arms:
-                step = update_with(arm)
                 if device.type == "cuda":
                     torch.cuda.synchronize()
                 start = time.perf_counter()
-                for data in batches[1:]:
-                    step(data)
+                for _ in range(cli.updates):
+                    steps[arm]()
                 if device.type == "cuda":
                     torch.cuda.synchronize()
-                times[arm].append(1e3 * (time.perf_counter() - start) / (len(batches) - 1))
+                times[arm].append(1e3 * (time.perf_counter() - start) / cli.updates)
         row = dict(settle_step=settled, tensors=len(states["eager"]),
                    differ={arm: len(names) for arm, names in compare.items()},
                    first_differ={arm: names[:5] for arm, names in compare.items()},
                    ms_per_update={arm: statistics.median(t) for arm, t in times.items()},
-                   graphs=len(updates["whole"].graphs) if "whole" in updates else 0)
+                   graphs={"whole": len(whole.graphs), "gather": len(gather.graphs)})
         result["scripts"][name] = row
         print(name, json.dumps(row), flush=True)
     if cli.out:
