@@ -76,9 +76,9 @@ else
   # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers; in the second
   # session (after the actor change, a slower host) 144 s on 16 workers, and the window its whole 115 s
   actor_flags=(--cuda --repeats 30)
-  adam_flags=(--device cuda --updates 300 --blocks 5)  # the paper's size: 1024 wide, batch 1024
+  adam_flags=(--device cuda --updates 200 --blocks 4)  # the paper's size; 2 scripts x 4 arms x 5 passes of 200
   act_store_flags=(--device cuda --steps 2000 --blocks 3)  # 8 000 steps per arm at about 1 ms each
-  # adam: 2 scripts x 3 arms x 6 passes of 300 updates, at most about 4 ms each, plus the imports
+  # adam: 2 scripts x 4 arms x 5 passes of 200 updates, at most about 4 ms each (about 32 s), plus the imports
   budget_items=45 budget_lines=45 budget_adam=45 budget_act_store=35 budget_actor=20 budget_exact=160
   budget_window=115 budget_aggregate=170
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
