@@ -14,8 +14,8 @@
 #              unless PARTS names it: its question was answered with --tf32)
 #   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
 #   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
-#   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide
-#              -> aggregate.csv (one row per configuration, written as each ends)
+#   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide started by
+#              benchmark.py with MPS -> aggregate.csv (one row per configuration, written as each ends)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
 # PARTS="items window": only these parts, in the order PARTS lists them (default: items adam act_store exact window
@@ -51,13 +51,13 @@ if [ "$dry" = "--dry-run" ]; then
   window_rounds=(600 900 1200)
   agg_steps=(400 500)
   agg_total=501
-  configs=("no x2 2" "yes x2 2")  # MPS cannot start on the CPU: its row is skipped
+  configs=("bench x2-benchmark 2" "no x2 2" "yes x2 2")  # MPS cannot start on the CPU: its row is skipped
   exact_workers=1
   actor_flags=(--hidden-dim 32 --batch-size 32 --repeats 5)
   adam_flags=(--device cpu --hidden-dim 32 --batch-size 32 --updates 20 --blocks 1)
   act_store_flags=(--device cpu --hidden-dim 32 --steps 200 --episode-length 100 --blocks 1)
   budget_items=120 budget_lines=120 budget_adam=60 budget_act_store=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
-  declare -A config_budget=([x2]=70)
+  declare -A config_budget=([x2]=70 [x2-benchmark]=80)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
   gpu=(--cuda-graph)
@@ -69,8 +69,10 @@ else
   agg_steps=(2200 2500)
   agg_total=2501  # one evaluation, at the end, after the window
   # the most telling first: a call cut off still compares 8 runs without and with MPS, and has 8 at 256 wide
-  # the issue's target first (8 runs at 256 wide with MPS), then 8 at the paper's size with and without MPS
-  configs=("yes x8-256wide 8 --hidden-dim 256 --batch-size 256" "yes x8 8" "no x8 8" "no x4 4" "yes x4 4" "yes x1 1")
+  # the issue's target first (8 runs at 256 wide with MPS, started by benchmark.py), then 8 at the paper's size with
+  # and without MPS
+  configs=("bench x8-256wide 8 --hidden-dim 256 --batch-size 256" "yes x8 8" "no x8 8" "no x4 4" "yes x4 4"
+           "yes x1 1")
   exact_workers=16
   # from the H100's first call (h100-2026-11-26/measure.log): items took 34 s, the window 103 s, the aggregate's
   # configurations 65, 34, 23, 40, 27 and 21 s; the exactness tests 116 s on 14 workers; in the second
@@ -204,13 +206,37 @@ part_window() {
     --to-step "${agg_steps[1]}"
 }
 
-config() {  # mps (yes or no), name, runs, flags...: runs started together, then their row of aggregate.csv
+bench_config() {  # name, runs, flags...: the runs started by benchmark.py, with its own MPS daemon on the GPU
+  local name=$1 n=$2
+  shift 2
+  mps_quit  # benchmark.py starts a daemon of its own
+  local dir="$work/aggregate/$name-benchmark" seconds=${config_budget[$name]}
+  mkdir -p "$dir"
+  local sharing=(--workers "$n")
+  [ "$dry" = "--dry-run" ] || sharing=(--gpus 0 --runs-per-gpu "$n" --mps)
+  echo "$(date +%T) [$SECONDS s] $name: $n run(s) started by benchmark.py ${sharing[*]}, budget $seconds s, flags: $*"
+  # the base flags but the task and noise, which benchmark.py gives each command
+  (cd "$dir" && exec timeout -s TERM "$seconds" "$py" "$root/benchmark.py" --env-ids cheetah-run --noises 0.9 \
+    --methods r2n_pebble --seeds $(seq 1 "$n") "${sharing[@]}" --log-dir "$dir/logs" \
+    --extra="${base[*]:4} ${gpu[*]} --total-timesteps $agg_total --eval-freq 100000 $*" > "$dir/benchmark.log" 2>&1) &
+  wait $! || echo "$name: benchmark.py exit $? (124: cut off at its budget); its log's end: $(tail -2 "$dir/benchmark.log")"
+  "$py" "$helper" rates "$dir" "$out/aggregate.csv" --name "$name" --mps benchmark --started "$n" \
+    --from-step "${agg_steps[0]}" --to-step "${agg_steps[1]}"
+  archive
+}
+
+config() {  # mps (yes, no, or bench: started by benchmark.py), name, runs, flags...: runs started together, then
+  # their row of aggregate.csv
   local mps=$1 name=$2 n=$3
   shift 3
   local seconds=${config_budget[$name]}
   local left=$((part_end - SECONDS))
   if [ "$left" -lt "$seconds" ]; then
     echo "$(date +%T) $name (MPS $mps): skipped, ${left} s left of the part and it needs ${seconds} s"
+    return
+  fi
+  if [ "$mps" = bench ]; then
+    bench_config "$name" "$n" "$@"
     return
   fi
   if [ "$mps" = yes ] && [ "$mps_on" = 0 ]; then
