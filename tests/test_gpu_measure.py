@@ -18,6 +18,20 @@ sys.path.insert(0, os.path.dirname(HELPER))
 import measure  # noqa: E402
 
 
+# a tiny cartpole run: learned-reward steps from step 200, no evaluation before the end
+TINY_RUN = ("--env-id", "cartpole-swingup", "--noise", "0.9", "--learning-starts", "100", "--unsup-steps", "100",
+            "--episode-length", "100", "--eval-freq", "10000", "--eval-episodes", "1", "--hidden-dim", "32",
+            "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-epochs", "2", "--segment-size", "20",
+            "--max-feedback", "10", "--queries-per-round", "5", "--no-cuda")
+
+
+def instrumented(kind, out, first, last, script, args):
+    """The helper's `items` or `lines` run of `script`, in `out`'s folder."""
+    subprocess.run([sys.executable, HELPER, kind, str(out), "--from-step", str(first), "--to-step", str(last),
+                    os.path.join(ROOT, script), *args], cwd=os.path.dirname(out), capture_output=True, text=True,
+                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore"), timeout=120)
+
+
 def write_run(folder, points, tag="losses/qf_loss"):
     writer = SummaryWriter(str(folder))
     for step, wall in points:
@@ -97,14 +111,9 @@ def test_exact_table_from_a_junit_report(tmp_path):
 def test_items_of_a_tiny_run_on_the_cpu(tmp_path):
     """Steps 250 to 300 of a tiny run: no evaluation or feedback round inside, so every step counts; each item is
     timed once a step (the target update every second step), and the items and the rest add up to the step."""
-    args = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--learning-starts", "100", "--unsup-steps", "100",
-            "--episode-length", "100", "--total-timesteps", "301", "--eval-freq", "10000", "--eval-episodes", "1",
-            "--hidden-dim", "32", "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-epochs", "2",
-            "--segment-size", "20", "--max-feedback", "10", "--queries-per-round", "5", "--no-cuda"]
+    args = [*TINY_RUN, "--total-timesteps", "301"]
     out = tmp_path / "items.csv"
-    subprocess.run([sys.executable, HELPER, "items", str(out), "--from-step", "250", "--to-step", "300",
-                    os.path.join(ROOT, "r2n_pebble.py"), *args], cwd=tmp_path, capture_output=True, text=True,
-                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore"), timeout=120)
+    instrumented("items", out, 250, 300, "r2n_pebble.py", args)
     text = out.read_text()
     rows = {r["item"]: r for r in csv.DictReader(line for line in text.splitlines() if not line.startswith("#"))}
     assert "# 50 plain steps from 250 to 300 (0 left out" in text
@@ -180,14 +189,9 @@ def test_adam_capture_host_counts_move_by_one_update(tmp_path):
 def test_lines_of_a_tiny_run_on_the_cpu(tmp_path):
     """The line profile: each line of the main loop and of `sac_update` and `store` is a row, named by its text; the
     main lines and the rest add up to the step, the functions' lines being inside them."""
-    args = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--learning-starts", "100", "--unsup-steps", "100",
-            "--episode-length", "100", "--total-timesteps", "241", "--eval-freq", "10000", "--eval-episodes", "1",
-            "--hidden-dim", "32", "--batch-size", "32", "--reward-hidden-dim", "16", "--reward-epochs", "2",
-            "--segment-size", "20", "--max-feedback", "10", "--queries-per-round", "5", "--no-cuda"]
+    args = [*TINY_RUN, "--total-timesteps", "241"]
     out = tmp_path / "lines.csv"
-    subprocess.run([sys.executable, HELPER, "lines", str(out), "--from-step", "210", "--to-step", "240",
-                    os.path.join(ROOT, "pebble.py"), *args], cwd=tmp_path, capture_output=True, text=True,
-                   check=True, env=dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore"), timeout=120)
+    instrumented("lines", out, 210, 240, "pebble.py", args)
     rows = list(csv.DictReader(line for line in out.read_text().splitlines() if not line.startswith("#")))
     names = [r["item"] for r in rows]
     assert any(n.startswith("main:") and "env.step(" in n for n in names)

@@ -144,22 +144,22 @@ echo "flags of every timed run: ${base[*]} ${gpu[*]}"
 torch.cuda.get_device_name(0))"
 command -v nvidia-smi > /dev/null && nvidia-smi --query-gpu=name,memory.used,memory.total --format=csv,noheader
 
-part_items() {
-  mkdir -p "$work/items"
-  (cd "$work/items" && exec timeout -s KILL "$budget_items" "$py" "$helper" items "$out/items.csv" \
+instrumented() {  # items or lines: one run in the helper's process, timed by item or by line -> $out/$1.csv
+  local kind=$1 budget="budget_$1"
+  mkdir -p "$work/$kind"
+  (cd "$work/$kind" && exec timeout -s KILL "${!budget}" "$py" "$helper" "$kind" "$out/$kind.csv" \
     --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
-    "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name items > items.log 2>&1) &
-  wait $! || echo "items: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/items/items.log")"
-  [ -f "$out/items.csv" ] && cat "$out/items.csv"
+    "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name "$kind" > "$kind.log" 2>&1) &
+  wait $! || echo "$kind: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/$kind/$kind.log")"
+  [ -f "$out/$kind.csv" ] && cat "$out/$kind.csv"
+}
+
+part_items() {
+  instrumented items
 }
 
 part_lines() {
-  mkdir -p "$work/lines"
-  (cd "$work/lines" && exec timeout -s KILL "$budget_lines" "$py" "$helper" lines "$out/lines.csv" \
-    --from-step "${items_steps[0]}" --to-step "${items_steps[1]}" "$root/r2n_pebble.py" "${base[@]}" "${gpu[@]}" \
-    "${items_flags[@]}" --total-timesteps $((items_steps[1] + 1)) --run-name lines > lines.log 2>&1) &
-  wait $! || echo "lines: exit $? (137: cut off at its budget); the log's end: $(tail -3 "$work/lines/lines.log")"
-  [ -f "$out/lines.csv" ] && cat "$out/lines.csv"
+  instrumented lines
 }
 
 part_adam() {
