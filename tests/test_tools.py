@@ -1843,6 +1843,11 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
 
 
 def test_stored_table_table_is_what_the_committed_runs_give():
-    """The committed table.md and the README's table block regenerate from the committed event files."""
-    subprocess.run([sys.executable, os.path.join(ROOT, "results", "stored-table", "table.py"), "--check"],
-                   check=True, cwd=ROOT, capture_output=True, text=True)
+    """The committed table.md, the README's table block and the pilot's decisions (pilot-decisions.md) regenerate from
+    the committed event files."""
+    study = os.path.join(ROOT, "results", "stored-table")
+    subprocess.run([sys.executable, os.path.join(study, "table.py"), "--check"], check=True, cwd=ROOT,
+                   capture_output=True, text=True)
+    decisions = subprocess.run([sys.executable, os.path.join(study, "power.py")], check=True, cwd=ROOT,
+                               capture_output=True, text=True).stdout
+    assert decisions == open(os.path.join(study, "pilot-decisions.md")).read()
