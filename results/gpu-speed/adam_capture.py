@@ -39,7 +39,7 @@ OBS_DIM, ACT_DIM = 171, 6  # cheetah-run at --noise 0.9
 def settle_step(lr: float, beta1: float, beta2: float) -> int:
     """The first step count t from which foreach Adam's host scalars, as float32, no longer change.
     They move monotonically towards their limits, so once equal to them they stay equal."""
-    limits = np.float32((lr / 1.0) * -1), np.float32(1.0)
+    limits = np.float32(-lr), np.float32(1.0)
     t = 1
     while (np.float32((lr / (1 - beta1**t)) * -1), np.float32((1 - beta2**t) ** 0.5)) != limits:
         t += 1
@@ -48,10 +48,7 @@ def settle_step(lr: float, beta1: float, beta2: float) -> int:
 
 def adams(agent) -> list:
     """The agent's torch Adams (inside the sparse optimiser's wrapper, where there is one)."""
-    found = []
-    for optimizer in (agent.q_optimizer, agent.actor_optimizer, agent.a_optimizer):
-        found.append(getattr(optimizer, "optimizer", optimizer))
-    return found
+    return [getattr(o, "optimizer", o) for o in (agent.q_optimizer, agent.actor_optimizer, agent.a_optimizer)]
 
 
 def agent_settle_step(agent) -> int:
