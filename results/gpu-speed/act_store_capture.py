@@ -74,7 +74,7 @@ def eager_steps(module, s: Storage, env: StandInEnv, steps: int, device) -> list
         module.store(s.rb, obs, action, next_obs, terminated, float(reward), s.reward_model, s.episodes,
                      np.zeros(0))
         obs = next_obs
-        if truncated:
+        if terminated or truncated:
             obs = torch.as_tensor(env.reset(), device=device)
     return actions
 
@@ -120,10 +120,10 @@ class Graphs:
         if not self.capture:
             return
         for name in ("act_step", "store_step"):
+            state = torch.cuda.get_rng_state()
+            snapshot = [t.clone() for t in self.tensors()]  # queued before the side stream's wait: taken first
             side = torch.cuda.Stream()
             side.wait_stream(torch.cuda.current_stream())
-            state = torch.cuda.get_rng_state()
-            snapshot = [t.clone() for t in self.tensors()]
             with torch.cuda.stream(side):
                 getattr(self, name)()
             torch.cuda.current_stream().wait_stream(side)
@@ -168,7 +168,7 @@ class Graphs:
             episodes.t += 1
             if episodes.t == episodes.episode_length:
                 episodes.n_complete, episodes.t = episodes.n_complete + 1, 0
-            if truncated:
+            if terminated or truncated:
                 self.obs.copy_(torch.as_tensor(env.reset()), non_blocking=False)
         return actions
 

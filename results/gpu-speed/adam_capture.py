@@ -21,6 +21,7 @@ milliseconds per update of each arm over interleaved blocks. On the CPU, `whole`
 eagerly through the same host bookkeeping: a check of the harness and of the gathers, not of a graph.
 """
 import argparse
+import functools
 import importlib
 import json
 import os
@@ -36,6 +37,7 @@ sys.path.insert(0, ROOT)
 OBS_DIM, ACT_DIM = 171, 6  # cheetah-run at --noise 0.9
 
 
+@functools.lru_cache
 def settle_step(lr: float, beta1: float, beta2: float) -> int:
     """The first step count t from which foreach Adam's host scalars, as float32, no longer change.
     They move monotonically towards their limits, so once equal to them they stay equal."""
@@ -131,16 +133,25 @@ class WholeUpdate:
                 self.update(static)
             after = self.counts.read()
             self.counts.write(before)  # the capture ran no kernel: its host moves are undone
-            self.graphs[key] = graph, static, [a - b for a, b in zip(after, before)]
-        graph, static, delta = self.graphs[key]
+            # the losses this graph writes: `loop.losses` points at another graph's after that one's capture
+            self.graphs[key] = graph, static, [a - b for a, b in zip(after, before)], dict(self.loop.losses)
+        graph, static, delta, losses = self.graphs[key]
         torch._foreach_copy_(tensors(static), tensors(x))
         graph.replay()
         self.counts.write([v + d for v, d in zip(self.counts.read(), delta)])
+        self.loop.losses.update(losses)
 
 
-def snapshot(agent) -> dict:
-    """Every parameter, Adam moment and step count of the agent, by name, on the host."""
-    out = {}
+def snapshot(agent, loop) -> dict:
+    """Every parameter, Adam moment and step count of the agent, the sparse masks and the host counts, by name, on the
+    host; and the latest losses."""
+    out = {f"loss.{k}": v.detach().cpu().clone() for k, v in loop.losses.items()}
+    out["sac_updates"] = torch.tensor(loop.sac_updates)
+    for name in ("actor_optimizer", "q_optimizer"):
+        sparse = getattr(agent, name)
+        if hasattr(sparse, "masks"):
+            out |= {f"{name}.mask.{k}": m.cpu().clone() for k, m in sparse.masks.items()}
+            out[f"{name}.steps"] = torch.tensor([sparse.steps, sparse.topology_updates])
     for name, value in vars(agent).items():
         if isinstance(value, torch.nn.Module):
             out |= {f"{name}.{k}": v.detach().cpu().clone() for k, v in value.state_dict().items()}
@@ -194,6 +205,8 @@ def main():
             module.sac_update(agents[arm], rb.sample(cli.batch_size), loops[arm], args)  # Adam's state from here
             settled = agent_settle_step(agents[arm])
             set_steps(agents[arm], settled)
+            for sparse in HostCounts(agents[arm], loops[arm]).sparse:  # a RigL step inside the comparison
+                sparse.steps = sparse.period - cli.updates // 2
         saved = {n: getattr(module, n) for n in ("critic_gradients", "actor_gradients", "target_update")}
         graphs = {n: module.CudaGraph(f) for n, f in saved.items()} if "parts" in arms else {}
 
@@ -225,7 +238,7 @@ def main():
                 steps[arm]()
             if device.type == "cuda":
                 torch.cuda.synchronize()
-            states[arm] = snapshot(agents[arm])
+            states[arm] = snapshot(agents[arm], loops[arm])
         compare = {arm: same_bits(states["eager"], states[arm]) for arm in arms if arm != "eager"}
         # the timing: interleaved blocks, each arm continuing from where it stood
         times = {arm: [] for arm in arms}
@@ -246,9 +259,9 @@ def main():
                    graphs={"whole": len(whole.graphs), "gather": len(gather.graphs)})
         result["scripts"][name] = row
         print(name, json.dumps(row), flush=True)
-    if cli.out:
-        with open(cli.out, "w") as f:
-            json.dump(result, f, indent=1)
+        if cli.out:  # after each script: a part cut off at its budget keeps the scripts it finished
+            with open(cli.out, "w") as f:
+                json.dump(result, f, indent=1)
 
 
 if __name__ == "__main__":

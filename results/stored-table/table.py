@@ -15,7 +15,6 @@ rule 4) at the achieved pooled SD and seeds (`analyze.power`). Holm's correction
 (the cheetah row's test was its own study's) once all of them are in.
 """
 import argparse
-import glob
 import os
 import sys
 
@@ -46,10 +45,18 @@ def task_plan(task: str, study_cv: float):
     return dict(folder=RUNS, n=decided["n"], kind=decided["kind"], effect=decided["effect"])
 
 
-def arm_folders(folder: str, method: str, task: str) -> list:
+def arm_folders(folder: str, method: str, task: str, n: int) -> list:
+    """The finished runs of seeds 1 to `n` (the protocol's), in seed order."""
     noise, budget = TASKS[task][:2]
-    pattern = os.path.join(folder, f"{method}__{task}__noise{noise:g}__budget{budget}__seed*")
-    return sorted((f for f in glob.glob(pattern) if os.path.exists(os.path.join(f, "done"))), key=analyze.natural_order)
+    folders = [os.path.join(folder, f"{method}__{task}__noise{noise:g}__budget{budget}__seed{seed}")
+               for seed in range(1, n + 1)]
+    return [f for f in folders if os.path.exists(os.path.join(f, "done"))]
+
+
+def primary(returns: np.ndarray) -> float:
+    """The primary metric over the finite evaluations: a run stopped by a non-finite value counts with what it
+    reached (PROTOCOL.md part 2)."""
+    return power.primary(returns[np.isfinite(returns)])
 
 
 def holm(pvalues: dict) -> dict:
@@ -69,11 +76,11 @@ def rows() -> list:
         row = dict(task=task, noise=noise, budget=budget, paper=(paper_pebble, paper_r2n),
                    paper_gain=paper_r2n / paper_pebble - 1, plan=task_plan(task, study_cv))
         if row["plan"] is not None:
-            folders = {m: arm_folders(row["plan"]["folder"], m, task) for m in METHODS}
+            folders = {m: arm_folders(row["plan"]["folder"], m, task, row["plan"]["n"]) for m in METHODS}
             row["runs_in"] = sum(map(len, folders.values()))
             if all(len(f) == row["plan"]["n"] for f in folders.values()):
                 row["curves"] = {m: [power.curve(f) for f in fs] for m, fs in folders.items()}
-                row["arms"] = {m: np.array([power.primary(c[1]) for c in cs]) for m, cs in row["curves"].items()}
+                row["arms"] = {m: np.array([primary(c[1]) for c in cs]) for m, cs in row["curves"].items()}
         out.append(row)
     powered = {r["task"]: r for r in out if r["task"] != "cheetah-run" and r["plan"] and r["plan"]["kind"] == "powered"}
     for r in out:
@@ -138,7 +145,7 @@ def write_curves(out: list, path: str):
             continue
         for method, colour in zip(METHODS, ("tab:blue", "tab:red")):
             curves = r["curves"][method]
-            steps = curves[0][0]
+            steps = min((c[0] for c in curves), key=len)  # the steps every run reached
             values = np.array([c[1][: len(steps)] for c in curves])
             mean, se = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
             ax.plot(steps, mean, color=colour, label=f"{method} ({len(values)})")
