@@ -99,24 +99,25 @@ class Graphs:
     def store_step(self):
         """`store`'s writes at the packed positions; then the new observation becomes the one to act on."""
         rb, episodes = self.s.rb, self.s.episodes
-        next_obs, reward, terminated = self.packed[:OBS_DIM], self.packed[OBS_DIM:OBS_DIM + 1], \
-            self.packed[OBS_DIM + 1:OBS_DIM + 2]
-        pos, row = self.packed[OBS_DIM + 2:OBS_DIM + 3].long(), self.packed[OBS_DIM + 3:OBS_DIM + 5].long()
+        next_obs = self.packed[:OBS_DIM]
+        reward = self.packed[OBS_DIM:OBS_DIM + 1]
+        terminated = self.packed[OBS_DIM + 1:OBS_DIM + 2]
+        pos = self.packed[OBS_DIM + 2:OBS_DIM + 3].long()
+        row = self.packed[OBS_DIM + 3:OBS_DIM + 5].long()
+        inputs = torch.cat([self.obs, self.action]).unsqueeze(0)  # [obs, action], as `store` forms it
         rb.obs.index_copy_(0, pos, self.obs.unsqueeze(0))
         rb.actions.index_copy_(0, pos, self.action.unsqueeze(0))
         rb.next_obs.index_copy_(0, pos, next_obs.unsqueeze(0))
         rb.dones.index_copy_(0, pos, terminated)
         rb.true_rewards.index_copy_(0, pos, reward)
-        rb.rewards.index_copy_(0, pos, self.s.reward_model.mean_reward(
-            torch.cat([self.obs, self.action]).unsqueeze(0)))
+        rb.rewards.index_copy_(0, pos, self.s.reward_model.mean_reward(inputs))
         flat = row[0:1] * episodes.episode_length + row[1:2]  # (slot, t) in the flattened store
-        episodes.inputs.view(-1, OBS_DIM + ACT_DIM).index_copy_(
-            0, flat, torch.cat([self.obs, self.action]).unsqueeze(0))
+        episodes.inputs.view(-1, OBS_DIM + ACT_DIM).index_copy_(0, flat, inputs)
         episodes.true_rewards.view(-1).index_copy_(0, flat, reward)
         self.obs.copy_(next_obs)
 
     def warm(self):
-        """Capture both graphs before the first step, on scratch positions that the first step overwrites."""
+        """Capture both graphs before the first step; the warm-up's writes and draws are undone."""
         if not self.capture:
             return
         for name in ("act_step", "store_step"):
@@ -169,7 +170,7 @@ class Graphs:
             if episodes.t == episodes.episode_length:
                 episodes.n_complete, episodes.t = episodes.n_complete + 1, 0
             if terminated or truncated:
-                self.obs.copy_(torch.as_tensor(env.reset()), non_blocking=False)
+                self.obs.copy_(torch.as_tensor(env.reset()))
         return actions
 
 
