@@ -20,7 +20,10 @@ the chance level) and one plot per task and setting (its curve per method and ne
 Choices where the paper is silent:
 - A run is used only if it is readable, has a hyperparameter table with `env_id`, `exp_name` and `seed`, has at least
   one evaluation point, and is finished: its last evaluation step is >= `total_timesteps` (the scripts evaluate at the
-  last step). `--include-unfinished` also uses unfinished runs.
+  last step). `--include-unfinished` also uses unfinished runs. A run that `benchmark.py` finished when a non-finite
+  value stopped it (its folder's `done` file has a `stopped` line) is used with what it reached: it does not shorten
+  its group's steps, its curve is empty after its stop, and its metrics are over its finite evaluations (the primary
+  metric: its last `--primary-last` of them).
 - Runs of one group must agree on every hyperparameter except the run-specific ones in `RUN_SPECIFIC_KEYS` (seed,
   exp_name, logging, device and thread settings that do not change the algorithm); a flag the scripts gained later
   (`ADDED_FLAG_DEFAULTS`) counts at its default for runs recorded before it existed. The configuration shared by most
@@ -127,6 +130,7 @@ class Run:
     status: str = "used"  # "used" or "skipped"
     reason: str = ""
     note: str = ""
+    stopped: bool = False  # by a non-finite value: used with what it reached
     wall_seconds: float = float("nan")  # first to last event, summed over the starts of a resumed run
 
     @property
@@ -163,15 +167,22 @@ class Group:
 
     @property
     def final(self) -> np.ndarray:
-        return self.curves[:, -1]
+        return np.array([row[np.isfinite(row)][-1] for row in self.curves])
 
     @property
     def auc(self) -> np.ndarray:
-        return self.curves.sum(axis=1)
+        return np.where(np.isfinite(self.curves), self.curves, 0.0).sum(axis=1)
 
     def values(self, metric: str, last: int) -> np.ndarray:
-        """Per seed: the mean of the `last` evaluations (`primary`), the final return or the AUC."""
-        return self.curves[:, -last:].mean(axis=1) if metric == "primary" else getattr(self, metric)
+        """Per seed: the mean of the `last` evaluations (`primary`), the final return or the AUC; a run stopped by a
+        non-finite value, over its finite ones."""
+        if metric != "primary":
+            return getattr(self, metric)
+        primary = self.curves[:, -last:].mean(axis=1)
+        for i, row in enumerate(self.curves):
+            if not np.isfinite(row).all():
+                primary[i] = row[np.isfinite(row)][-last:].mean()
+        return primary
 
 
 # ---------------------------------------------------------------- reading
@@ -279,6 +290,13 @@ def read_folder(paths: list) -> list:
     return runs
 
 
+def stopped_line(run: Run) -> str:
+    """The `stopped` line of the `done` file beside the run (benchmark.py: a stop at a non-finite value), else ''."""
+    path = os.path.join(run.folder, "done")
+    lines = open(path).read().splitlines() if os.path.exists(path) else []
+    return next((line for line in lines if line.startswith("stopped ")), "")
+
+
 def load_runs(log_dirs, include_unfinished: bool = False) -> list:
     """Every run found, with `status` "used" or "skipped" and the reason: unreadable, crashed, unfinished."""
     runs = []
@@ -296,6 +314,9 @@ def load_runs(log_dirs, include_unfinished: bool = False) -> list:
             run.skip(f"unreadable: hyperparameters table lacks {', '.join(missing)}")
         elif len(steps) == 0:
             run.skip(f"crashed: no {EVAL_TAG} point")
+        elif stopped := stopped_line(run):
+            run.stopped = True
+            run.note = "; ".join(filter(None, [run.note, f"{stopped} (its done file): counted with what it reached"]))
         elif isinstance(total, int) and steps[-1] < total:
             state = f"unfinished: last evaluation at step {steps[-1]} of total_timesteps {total}"
             if include_unfinished:
@@ -355,14 +376,15 @@ def make_groups(runs) -> list:
                 r.skip(f"duplicate seed {seed} in its group (kept {same[0].path})")
         members = sorted((r for r in members if r.status == "used"), key=lambda r: (r.seed, r.path))
         group = Group(key, members)
-        common = members[0].eval_steps
-        for r in members[1:]:
+        aligned = [r for r in members if not r.stopped] or members  # a stopped run does not shorten the others
+        common = aligned[0].eval_steps
+        for r in aligned[1:]:
             common = np.intersect1d(common, r.eval_steps)
         if len(common) == 0:
             for r in members:
                 r.skip("no evaluation step in common with the other runs of its group")
             continue
-        dropped = sum(len(r.eval_steps) - len(common) for r in members)
+        dropped = sum(len(np.setdiff1d(r.eval_steps, common)) for r in members)
         if dropped:
             group.notes.append(
                 f"aligned on the {len(common)} evaluation steps common to its {len(members)} runs "
@@ -370,9 +392,18 @@ def make_groups(runs) -> list:
             )
         group.notes.extend(f"{os.path.relpath(r.path, os.path.dirname(r.folder))}: {r.note}" for r in members if r.note)
         group.steps = common
-        group.curves = np.stack([r.scalars[EVAL_TAG][1][np.searchsorted(r.eval_steps, common)] for r in members])
+        group.curves = np.stack([curve_at(r, common) for r in members])
         groups.append(group)
     return groups
+
+
+def curve_at(run: Run, steps: np.ndarray) -> np.ndarray:
+    """The run's evaluation returns at `steps`; NaN after a non-finite value stopped it."""
+    values = run.scalars[EVAL_TAG][1]
+    if not run.stopped:
+        return values[np.searchsorted(run.eval_steps, steps)]
+    returns = dict(zip(run.eval_steps.tolist(), values.tolist()))
+    return np.array([returns.get(step, np.nan) for step in steps.tolist()])
 
 
 # ---------------------------------------------------------------- statistics
@@ -664,11 +695,11 @@ def runs_lines(groups, rows) -> list:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for g in sorted(groups, key=lambda g: order[g.key]):
-        for run, curve in zip(g.runs, g.curves):
+        for run, final, auc in zip(g.runs, g.final, g.auc):
             steps, corr, accuracy = (last_value(run, tag) for tag in DIAGNOSTIC_TAGS)
             sparse = ", ".join(f"{net} {frac:.3f} ({fmt(chance, 3)})" for net, frac, chance in connectivity(run))
             lines.append(
-                f"| `{os.path.basename(run.folder)}` | {run.seed} | {curve[-1]:.1f} | {curve.sum():.0f} "
+                f"| `{os.path.basename(run.folder)}` | {run.seed} | {final:.1f} | {auc:.0f} "
                 f"| {cell(run.wall_seconds / 60, 0, ' min')} | {cell(steps, 0)} | {cell(corr, 3)} | {cell(accuracy, 3)} "
                 f"| {sparse or '–'} |"
             )
@@ -809,10 +840,12 @@ def write_plots(groups, args: Args) -> list:
     colour = {m: cmap(i % cmap.N) for i, m in enumerate(methods)}
 
     def band(ax, steps, values, label, **style):
-        mean = values.mean(axis=0)
+        with warnings.catch_warnings():  # a run stopped by a non-finite value leaves the steps after its stop
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(values, axis=0)
+            se = np.nanstd(values, axis=0, ddof=1) / np.sqrt(np.isfinite(values).sum(axis=0))
         line = ax.plot(steps, mean, label=label, **style)[0]
         if len(values) > 1:
-            se = values.std(axis=0, ddof=1) / math.sqrt(len(values))
             ax.fill_between(steps, mean - se, mean + se, color=line.get_color(), alpha=0.2, linewidth=0)
 
     def style_axis(ax, title, ylabel):

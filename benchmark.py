@@ -10,7 +10,8 @@ deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` 
 Choices where the issue is silent:
 - Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
 - A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
-  with code 0 (a failure writes `{run_id}.failed` with the exit code instead). Finished runs are skipped by the next
+  with code 0, or stops at a non-finite value, which a resume would meet again (its line is in the marker: the run
+  counts with what it reached); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are skipped by the next
   call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
   is cheap, exact, and works for runs whose folder name carries only env, method, seed and time. With a results
   folder (`--results-dir`, `cpu-study`), a run counts as finished only when `{results_dir}/{run_id}/done` exists:
@@ -143,6 +144,14 @@ STORED_TABLE_PILOT = tuple(
            ("--feedback-freq", "1200"))
     for methods, seeds in ((("pebble", "r2n_pebble", "sac", "anf_sac"), (901,)), (("pebble",), (902,)))
 )
+# Its primary runs (PROTOCOL.md part 2): per task, seeds 1 to n, n from its pilot (`results/stored-table/power.py`).
+# A task enters once part 2 has decided it; the order is the protocol's.
+STORED_TABLE_SEEDS = {"cartpole-swingup": 8}
+STORED_TABLE = tuple(
+    Preset((setting,), ("pebble_stored_noise", "r2n_pebble_stored_noise"), tuple(range(1, STORED_TABLE_SEEDS[task] + 1)),
+           CHEETAH_FLAGS, ("--feedback-freq", "1200"))
+    for setting in STORED_TABLE_SETTINGS if (task := setting[0]) in STORED_TABLE_SEEDS
+)
 # Issue 21's imitating noise (results/imitate/PROTOCOL.md, exploratory): the cpu-study's main setting with noise features
 # drawn from the histograms of a noise-free SAC policy's observations (made by results/imitate/run.sh first).
 IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), REDRAWN + CPU_STUDY_FLAGS + (
@@ -152,7 +161,7 @@ IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), REDRAWN +
 RESULTS = {"cpu-study": "results/cpu-study", "cheetah-pilot": "results/cheetah-pilot", "early-stop": "results/early-stop",
            "cheetah-study": "results/cheetah-study", "imitate": "results/imitate",
            "stored-noise": "results/stored-noise/runs", "redrawn-probes": "results/stored-noise/probes",
-           "stored-table-pilot": "results/stored-table/pilot"}
+           "stored-table-pilot": "results/stored-table/pilot", "stored-table": "results/stored-table/runs"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -194,6 +203,8 @@ PRESETS = {
     "redrawn-probes": REDRAWN_PROBES,
     # the main table's pilot in the stored ENE: 3 tasks x (pebble, r2n_pebble, sac, anf_sac, seed 901; pebble, seed 902)
     "stored-table-pilot": STORED_TABLE_PILOT,
+    # its primary runs: per task decided by part 2, pebble_stored_noise and r2n_pebble_stored_noise, seeds 1 to n
+    "stored-table": STORED_TABLE,
 }
 
 
@@ -201,7 +212,7 @@ PRESETS = {
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
                              "early-stop", "cheetah-pilot", "cheetah-study", "imitate", "stored-noise",
-                             "redrawn-probes", "stored-table-pilot"]] = None
+                             "redrawn-probes", "stored-table-pilot", "stored-table"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
@@ -211,7 +222,8 @@ class Args:
     imitating noise (`results/imitate`; run `results/imitate/run.sh`, which first makes its histograms);
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
     its three exploratory arms with the noise redrawn (`results/stored-noise/probes`); `stored-table-pilot`, the
-    pilot of the main table in the stored ENE (`results/stored-table/pilot`)"""
+    pilot of the main table in the stored ENE (`results/stored-table/pilot`), then `stored-table`, its primary runs
+    (`results/stored-table/runs`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,
     `pebble_stored_noise`, ...); replaces the preset's"""
@@ -488,11 +500,15 @@ def numerics_of(command: tuple) -> str:
     return " ".join(flags) if flags else "default (eager, FP32)"
 
 
+# the one line a script prints when a non-finite value stops it (docs/running.md), its exit code 1
+NON_FINITE = re.compile(r"^\S+: error: (non-finite .* at step \d+);", re.M)
+
+
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
-    """Append the exit code to the log and write the `.done` (code 0) or `.failed` marker, whose `seconds` add up the
-    starts of a resumed run (each ended start's time is in its log; a start cut off without an exit line is counted,
-    its seconds unknown). With a results folder, copy the run there; a run that left no event file has nothing to
-    keep and counts as failed."""
+    """Append the exit code to the log and write the `.done` (code 0, or a stop at a non-finite value: its `stopped`
+    line names it) or `.failed` marker, whose `seconds` add up the starts of a resumed run (each ended start's time is
+    in its log; a start cut off without an exit line is counted, its seconds unknown). With a results folder, copy the
+    run there; a run that left no event file has nothing to keep and counts as failed."""
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
@@ -502,8 +518,12 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     unended = sum("\n# exit code " not in start for start in re.split(r"^# started ", text, flags=re.M)[1:])
     events = glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*"))
     kept = events or not spec["results"]  # a study's run is what its event files hold
-    kind = "done" if returncode == 0 and kept else "failed"
+    # a run stopped by a non-finite value would stop there again if resumed: it is finished with what it reached
+    stopped = NON_FINITE.findall(text.rsplit("\n# started ", 1)[-1]) if returncode == 1 else []
+    kind = "done" if (returncode == 0 or stopped) and kept else "failed"
     summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"
+    if stopped:
+        summary += f"stopped {stopped[-1]}\n"
     summary += f"seconds {sum(starts):.0f} over {len(starts)} start(s)"
     if unended > 0:
         summary += f"; {unended} more start(s) ended without an exit line, their seconds unknown"

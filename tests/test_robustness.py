@@ -11,6 +11,7 @@ import torch
 
 from test_scripts import DEVICE, ROOT, SPARSE_TINY, TINY, run_script
 
+import benchmark  # noqa: E402
 import pebble  # noqa: E402
 
 # Tensor methods that read a tensor back to the host (a device sync on a GPU).
@@ -79,6 +80,7 @@ def test_non_finite_loss_stops_the_run_with_one_line_and_a_checkpoint(script, tm
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, result.stderr
     assert lines[0].startswith("nan: error: non-finite ") and " at step " in lines[0], lines[0]
+    assert benchmark.NON_FINITE.findall(result.stderr)  # the launcher keeps such a run with what it reached
     quantity = lines[0].split("non-finite ")[1].split(" ")[0]
     assert quantity.startswith(("losses/", "action", "eval/")), quantity
     assert "eval_return=" not in result.stdout  # it stopped long before the first evaluation

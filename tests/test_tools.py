@@ -329,6 +329,34 @@ def test_unfinished_runs_align_on_common_steps(synthetic, tmp_path):
 
 
 @needs_analysis
+def test_a_run_stopped_by_a_non_finite_value_counts_with_what_it_reached(tmp_path):
+    """A run whose `done` file says a non-finite value stopped it is used without shortening its group: its primary
+    metric is the mean of its last finite evaluations, its final return its last finite one, its AUC their sum. The same
+    run without that line is an unfinished run, skipped."""
+    rng = np.random.default_rng(1)
+    full = {seed: values(rng, len(STEPS), 0) for seed in (1, 2, 3)}
+    for seed, returns in full.items():
+        write_run(str(tmp_path / "runs"), "cheetah-run", 0.9, 1000, "pebble", seed, returns)
+    stopped = write_run(str(tmp_path / "runs"), "cheetah-run", 0.9, 1000, "pebble", 4, [10.0, 20.0, 30.0, 40.0])
+    for with_line in (False, True):
+        with open(os.path.join(stopped, "done"), "w") as f:
+            f.write("exit code 1\n" + "stopped non-finite losses/qf1_loss (nan) at step 4210\n" * with_line)
+        out = tmp_path / f"out{with_line}"
+        assert analyze.main(analyze.Args(log_dirs=(str(tmp_path / "runs"),), output_dir=str(out))) == 0
+        rows = {m: read_csv(out / f"{m}.csv")[0] for m in ("primary", "final_return", "auc")}
+        seeds = (1, 2, 3, 4) if with_line else (1, 2, 3)
+        assert rows["primary"]["seed_list"] == " ".join(map(str, seeds))
+        assert rows["primary"]["eval_points"] == str(len(STEPS))
+        primary = [full[s][-3:].mean() for s in (1, 2, 3)] + [30.0] * with_line
+        final = [full[s][-1] for s in (1, 2, 3)] + [40.0] * with_line
+        auc = [full[s].sum() for s in (1, 2, 3)] + [100.0] * with_line
+        for metric, expected in (("primary", primary), ("final_return", final), ("auc", auc)):
+            assert float(rows[metric]["mean"]) == pytest.approx(np.mean(expected), rel=1e-12), metric
+        assert ("stopped non-finite losses/qf1_loss" in rows["primary"]["notes"]) == with_line
+    assert (tmp_path / "outTrue" / "curves").exists()
+
+
+@needs_analysis
 def test_runs_sharing_a_folder_are_read_apart(tmp_path):
     """Two runs of a sweep started in the same second write into one folder: one run per event file."""
     write_run(str(tmp_path / "runs"), "cheetah-run", 0.5, 1000, "pebble", 1, [1.0] * 5, stamp=7)
@@ -573,6 +601,30 @@ def test_a_study_run_without_an_event_file_is_not_kept(tmp_path):
     SummaryWriter(os.path.join(spec["cwd"], "runs", "r")).close()  # now it has one
     benchmark.finish_run(spec, 0, 1.0)
     assert os.path.exists(tmp_path / "r.done") and os.path.exists(tmp_path / "results" / "r" / "done")
+
+
+def test_a_run_stopped_by_a_non_finite_value_is_kept_with_what_it_reached(tmp_path):
+    """A run stopped by a non-finite value (exit code 1 and the script's one line) would stop there again if resumed:
+    it is done, its `done` file names the stop, and its event file is kept. The same line in an earlier start, or an
+    exit code 1 without it, is a failure."""
+    spec = dict(run_id="r", command=["python", "pebble.py"], threads=1, commit="abc", cwd=str(tmp_path / "scratch"),
+                log=str(tmp_path / "r.log"), results=str(tmp_path / "results" / "r"))
+    os.makedirs(os.path.join(spec["cwd"], "runs", "r"))
+    SummaryWriter(os.path.join(spec["cwd"], "runs", "r")).close()
+    line = "pebble: error: non-finite losses/qf1_loss (nan) at step 1210; checkpoint for debugging: runs/r/pebble.cleanrl_model"
+    for log, code in (("# started 2026-11-28 01:00:00\nstep=1000\n", 1),  # stopped otherwise
+                      (f"# started 2026-11-28 01:00:00\n{line}\n# exit code 1 after 9 s\n"
+                       f"{benchmark.RESUMED}# started 2026-11-28 02:00:00\nstep=1000\n", 1),  # the stop was earlier
+                      (f"# started 2026-11-28 01:00:00\n{line}\n", 2)):  # not the stop's exit code
+        open(spec["log"], "w").write(log)
+        benchmark.finish_run(spec, code, 1.0)
+        assert os.path.exists(tmp_path / "r.failed") and not os.path.exists(tmp_path / "results" / "r" / "done")
+        os.remove(tmp_path / "r.failed")
+    open(spec["log"], "w").write(f"# started 2026-11-28 01:00:00\nstep=1000\n{line}\n")
+    benchmark.finish_run(spec, 1, 1.0)
+    done = open(tmp_path / "results" / "r" / "done").read().splitlines()
+    assert done[:2] == ["exit code 1", "stopped non-finite losses/qf1_loss (nan) at step 1210"], done
+    assert glob.glob(str(tmp_path / "results" / "r" / "events.out.tfevents.*")) and os.path.exists(tmp_path / "r.done")
 
 
 def start_sweep(tmp_path, signum, handler, patch=""):
@@ -1851,3 +1903,23 @@ def test_stored_table_table_is_what_the_committed_runs_give():
     decisions = subprocess.run([sys.executable, os.path.join(study, "power.py")], check=True, cwd=ROOT,
                                capture_output=True, text=True).stdout
     assert decisions == open(os.path.join(study, "pilot-decisions.md")).read()
+
+
+@needs_analysis
+def test_stored_table_preset_runs_what_the_pilot_decided():
+    """The primary preset holds, per task part 2 has decided, seeds 1 to the n of the task's pilot (power.py) of both
+    PbRL arms, in the stored ENE at the pilot's scale and feedback schedule, into the folder table.py reads."""
+    sys.path.insert(0, ROOT)
+    power = stored_table_module("power")
+    study_cv = power.stored_noise_cv()
+    assert list(benchmark.STORED_TABLE_SEEDS) == [t for t in power.TASKS if t in benchmark.STORED_TABLE_SEEDS]
+    pilot = benchmark.STORED_TABLE_PILOT[0]
+    for part in benchmark.PRESETS["stored-table"]:
+        [(task, noise, budget)] = part.settings
+        assert not power.missing_runs(task), f"{task} is in the preset before its pilot is in"
+        assert (noise, budget) == power.TASKS[task][:2]
+        assert part.seeds == tuple(range(1, power.plan(task, study_cv)["n"] + 1))
+        assert part.methods == ("pebble_stored_noise", "r2n_pebble_stored_noise")
+        assert (part.flags, part.feedback_flags) == (pilot.flags, pilot.feedback_flags)
+    assert [p.settings[0][0] for p in benchmark.PRESETS["stored-table"]] == list(benchmark.STORED_TABLE_SEEDS)
+    assert os.path.join(ROOT, benchmark.RESULTS["stored-table"]) == stored_table_module("table").RUNS
