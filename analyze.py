@@ -314,7 +314,9 @@ def load_runs(log_dirs, include_unfinished: bool = False) -> list:
             run.skip(f"unreadable: hyperparameters table lacks {', '.join(missing)}")
         elif len(steps) == 0:
             run.skip(f"crashed: no {EVAL_TAG} point")
-        elif stopped := stopped_line(run):
+        elif (stopped := stopped_line(run)) and not np.isfinite(run.scalars[EVAL_TAG][1]).any():
+            run.skip(f"crashed: {stopped} (its done file) before any finite {EVAL_TAG} point")
+        elif stopped:
             run.stopped = True
             run.note = "; ".join(filter(None, [run.note, f"{stopped} (its done file): counted with what it reached"]))
         elif isinstance(total, int) and steps[-1] < total:

@@ -354,6 +354,11 @@ def test_a_run_stopped_by_a_non_finite_value_counts_with_what_it_reached(tmp_pat
             assert float(rows[metric]["mean"]) == pytest.approx(np.mean(expected), rel=1e-12), metric
         assert ("stopped non-finite losses/qf1_loss" in rows["primary"]["notes"]) == with_line
     assert (tmp_path / "outTrue" / "curves").exists()
+    nothing = write_run(str(tmp_path / "runs"), "cheetah-run", 0.9, 1000, "pebble", 5, [float("nan")])
+    shutil.copy(os.path.join(stopped, "done"), nothing)  # stopped at its first evaluation: nothing reached
+    runs = analyze.load_runs((str(tmp_path / "runs"),))
+    [run] = [r for r in runs if r.seed == 5]
+    assert run.status == "skipped" and run.reason.startswith("crashed: stopped non-finite"), run.reason
 
 
 @needs_analysis
