@@ -11,8 +11,8 @@ Choices where the issue is silent:
 - Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
 - A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
   with code 0, or stops at a non-finite value, which a resume would meet again (its line is in the marker: the run
-  counts with what it reached); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are skipped by the next
-  call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
+  counts with what it reached); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are
+  skipped by the next call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not inspected: the marker
   is cheap, exact, and works for runs whose folder name carries only env, method, seed and time. With a results
   folder (`--results-dir`, `cpu-study`), a run counts as finished only when `{results_dir}/{run_id}/done` exists:
   the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
@@ -515,11 +515,12 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
         text = log.read()
     starts = [float(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s", text, re.M)]
     # a start whose launcher was killed (a session cut off) wrote no exit line: it is counted, its seconds are not
-    unended = sum("\n# exit code " not in start for start in re.split(r"^# started ", text, flags=re.M)[1:])
+    started = re.split(r"^# started ", text, flags=re.M)
+    unended = sum("\n# exit code " not in start for start in started[1:])
     events = glob.glob(os.path.join(spec["cwd"], "runs", spec["run_id"], "events.out.tfevents.*"))
     kept = events or not spec["results"]  # a study's run is what its event files hold
     # a run stopped by a non-finite value would stop there again if resumed: it is finished with what it reached
-    stopped = NON_FINITE.findall(text.rsplit("\n# started ", 1)[-1]) if returncode == 1 else []
+    stopped = NON_FINITE.findall(started[-1]) if returncode == 1 else []  # in the last start only
     kind = "done" if (returncode == 0 or stopped) and kept else "failed"
     summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"
     if stopped:

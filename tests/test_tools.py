@@ -616,7 +616,8 @@ def test_a_run_stopped_by_a_non_finite_value_is_kept_with_what_it_reached(tmp_pa
                 log=str(tmp_path / "r.log"), results=str(tmp_path / "results" / "r"))
     os.makedirs(os.path.join(spec["cwd"], "runs", "r"))
     SummaryWriter(os.path.join(spec["cwd"], "runs", "r")).close()
-    line = "pebble: error: non-finite losses/qf1_loss (nan) at step 1210; checkpoint for debugging: runs/r/pebble.cleanrl_model"
+    line = ("pebble: error: non-finite losses/qf1_loss (nan) at step 1210; "
+            "checkpoint for debugging: runs/r/pebble.cleanrl_model")
     for log, code in (("# started 2026-11-28 01:00:00\nstep=1000\n", 1),  # stopped otherwise
                       (f"# started 2026-11-28 01:00:00\n{line}\n# exit code 1 after 9 s\n"
                        f"{benchmark.RESUMED}# started 2026-11-28 02:00:00\nstep=1000\n", 1),  # the stop was earlier
