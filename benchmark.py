@@ -14,8 +14,8 @@ Choices where the issue is silent:
   counts with what it reached); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are
   skipped by the next call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not
   inspected: the marker is cheap, exact, and works for runs whose folder name carries only env, method, seed and
-  time. With a results folder (`--results-dir`, `cpu-study`), a run counts as finished only when `{results_dir}/{run_id}/done` exists:
-  the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
+  time. With a results folder (`--results-dir`, `cpu-study`), a run counts as finished only when
+  `{results_dir}/{run_id}/done` exists: the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
   in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra` nor a preset's
   scale flags: a results folder is for one configuration, and its `done` files, not the log folder's markers, which
   the presets at other scales share (`cpu-study` and `imitate` have 6 run ids in common), say what it holds.
