@@ -15,10 +15,11 @@ Choices where the issue is silent:
   skipped by the next call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not
   inspected: the marker is cheap, exact, and works for runs whose folder name carries only env, method, seed and
   time. With a results folder (`--results-dir`, `cpu-study`), a run counts as finished only when
-  `{results_dir}/{run_id}/done` exists: the event file, the log and that file, which names the git commit, are what a study commits; the run itself works
-  in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra` nor a preset's
-  scale flags: a results folder is for one configuration, and its `done` files, not the log folder's markers, which
-  the presets at other scales share (`cpu-study` and `imitate` have 6 run ids in common), say what it holds.
+  `{results_dir}/{run_id}/done` exists: the event file, the log and that file, which names the git commit, are what a
+  study commits; the run itself works in `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does
+  not include `--extra` nor a preset's scale flags: a results folder is for one configuration, and its `done` files,
+  not the log folder's markers, which the presets at other scales share (`cpu-study` and `imitate` have 6 run ids in
+  common), say what it holds.
 - Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
