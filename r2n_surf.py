@@ -993,10 +993,14 @@ def actor_gradients(agent: Agent, data: Batch) -> dict:
 
 @torch.no_grad()
 def target_update(agent: Agent, tau: float):
-    """Polyak averaging of the target critics."""
+    """Polyak averaging of the target critics. A pruned connection's target weight decays by
+    1 - tau per update into the subnormal floats, where rounding keeps it, and a CPU matmul over
+    subnormals is a hundred times slower. Such weights are set to zero: no sum they join changes."""
     online = list(agent.qf1.parameters()) + list(agent.qf2.parameters())
     targets = list(agent.qf1_target.parameters()) + list(agent.qf2_target.parameters())
     torch._foreach_lerp_(targets, online, tau)
+    for target in targets:
+        target.masked_fill_(target.abs() < torch.finfo(target.dtype).tiny, 0.0)
 
 
 @dataclass

@@ -8,6 +8,9 @@ same tiny configuration through every phase, and compares every TensorBoard poin
 Both noise variants are pinned. `--noise-resample` (the reference's default) gives the reference's redrawn runs in
 every script. The default, the noise stored, gives the reference's `--no-noise-resample` runs, the numerics of the
 stored-noise study, in the four scripts that study ran (the other eight share their storage code byte for byte).
+
+`target_update` sets subnormal target weights to zero; the reference kept them. A run with a fast Polyak average
+drives them into the subnormals, and its points and checkpoint are still the reference's.
 """
 import os
 import subprocess
@@ -77,7 +80,7 @@ def checkpoint_differences(a, b, key=""):
     return [] if type(a) is type(b) and a == b else [f"{key} ({a!r} vs {b!r})"]
 
 
-def run_both(script, variant, reference, current):
+def run_both(script, variant, reference, current, extra=()):
     """The reference and the current script at once (CI has two cores); a failure names the run and its stderr."""
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
     runs = {}
@@ -85,7 +88,7 @@ def run_both(script, variant, reference, current):
     try:
         for cwd, code, flags in ((reference, reference / script, reference_flags),
                                  (current, os.path.join(ROOT, script), current_flags)):
-            runs[cwd] = subprocess.Popen([sys.executable, str(code), *ARGS[script], *flags, *RUN], cwd=cwd, env=env,
+            runs[cwd] = subprocess.Popen([sys.executable, str(code), *ARGS[script], *flags, *extra, *RUN], cwd=cwd, env=env,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         for cwd, process in runs.items():
             _, stderr = process.communicate(timeout=600)
@@ -97,15 +100,18 @@ def run_both(script, variant, reference, current):
                 process.communicate()
 
 
-@pytest.mark.parametrize("script, variant", CASES)
-def test_numerics_equal_the_reference(script, variant, tmp_path):
+def folders(script, tmp_path):
+    """A folder for each run: the reference's holds its script and ene.py, which that script imports."""
     reference, current = tmp_path / "reference", tmp_path / "current"
     reference.mkdir()
     current.mkdir()
-    for path in (script, "ene.py"):  # the reference script imports the reference ene.py beside it
+    for path in (script, "ene.py"):
         (reference / path).write_bytes(reference_source(path))
-    run_both(script, variant, reference, current)
+    return reference, current
 
+
+def assert_same_run(script, reference, current):
+    """Every TensorBoard point but SPS and every checkpoint entry of the two runs are the same, bit for bit."""
     old, new = (points(cwd / "runs" / "numerics") for cwd in (reference, current))
     added = sorted(tag for tag in set(new) - set(old) if tag.startswith(ADDED_TAGS))
     assert added, f"{script}: the diagnostics added since {REFERENCE_COMMIT} are not logged"
@@ -129,3 +135,33 @@ def test_numerics_equal_the_reference(script, variant, tmp_path):
     assert not changed, f"{script}: the checkpoint's args differ from {REFERENCE_COMMIT}'s in {changed}"
     differences = checkpoint_differences(old, new)
     assert not differences, f"{script}: the final checkpoint differs from {REFERENCE_COMMIT}'s at {differences}"
+
+
+@pytest.mark.parametrize("script, variant", CASES)
+def test_numerics_equal_the_reference(script, variant, tmp_path):
+    reference, current = folders(script, tmp_path)
+    run_both(script, variant, reference, current)
+    assert_same_run(script, reference, current)
+
+
+@pytest.mark.parametrize("script", ["r2n_pebble.py"])
+def test_zeroing_subnormal_targets_changes_no_number(script, tmp_path):
+    """`target_update` sets the target critics' subnormal weights to zero. With a fast Polyak average (`--tau 0.3`)
+    pruned connections' target weights reach the subnormals within the run and stay there in the reference (0.7 times
+    the smallest subnormal rounds back to it). Every point and checkpoint entry is still the reference's, bit for bit,
+    and the final targets differ from the reference's only where those hold a subnormal, which is zero here."""
+    reference, current = folders(script, tmp_path)
+    run_both(script, "stored, the default", reference, current, extra=["--tau", "0.3", "--keep-state"])
+    assert_same_run(script, reference, current)
+    old, new = (torch.load(cwd / "runs" / "numerics" / "state.pt", weights_only=False)["objects"]
+                for cwd in (reference, current))
+    new = new["agent"]  # the reference's state keeps the agent's objects at its top level
+    tiny = torch.finfo(torch.float32).tiny
+    stuck = 0
+    for name in ("qf1_target", "qf2_target"):
+        for key, weight in old[name].items():
+            subnormal = (weight != 0) & (weight.abs() < tiny)
+            stuck += int(subnormal.sum())
+            assert torch.equal(torch.where(subnormal, torch.zeros_like(weight), weight), new[name][key]), (name, key)
+            assert not ((new[name][key] != 0) & (new[name][key].abs() < tiny)).any(), (name, key)
+    assert stuck, "no target weight of the reference's run reached the subnormals: the test tests nothing"
