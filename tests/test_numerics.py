@@ -156,12 +156,14 @@ def test_zeroing_subnormal_targets_changes_no_number(script, tmp_path):
     old, new = (torch.load(cwd / "runs" / "numerics" / "state.pt", weights_only=False)["objects"]
                 for cwd in (reference, current))
     new = new["agent"]  # the reference's state keeps the agent's objects at its top level
-    tiny = torch.finfo(torch.float32).tiny
+    def subnormal(weight):
+        return (weight != 0) & (weight.abs() < torch.finfo(weight.dtype).tiny)
+
     stuck = 0
     for name in ("qf1_target", "qf2_target"):
         for key, weight in old[name].items():
-            subnormal = (weight != 0) & (weight.abs() < tiny)
-            stuck += int(subnormal.sum())
-            assert torch.equal(torch.where(subnormal, torch.zeros_like(weight), weight), new[name][key]), (name, key)
-            assert not ((new[name][key] != 0) & (new[name][key].abs() < tiny)).any(), (name, key)
+            stuck += int(subnormal(weight).sum())
+            zeroed = torch.where(subnormal(weight), torch.zeros_like(weight), weight)
+            assert torch.equal(zeroed, new[name][key]), (name, key)
+            assert not subnormal(new[name][key]).any(), (name, key)
     assert stuck, "no target weight of the reference's run reached the subnormals: the test tests nothing"
