@@ -1896,13 +1896,19 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert row["power"] == pytest.approx(analyze.power(plan["effect"], sd, plan["n"]))
     assert "holm" not in row  # the other tasks' pilots are not in: Holm's family is not known yet
     line = table.table_lines([row])[-1]
-    assert f"| {np.mean(pebble):.1f} ± {np.std(pebble, ddof=1) / np.sqrt(plan['n']):.1f} ({plan['n']}) |" in line
+    pebble_cell = f"| {np.mean(pebble):.1f} ± {np.std(pebble, ddof=1) / np.sqrt(plan['n']):.1f} ({plan['n']}) |"
+    assert pebble_cell in line
+    walls = {m: [table.read(f)[1] for f in table.arm_folders(table.RUNS, m, task, plan["n"])] for m in table.METHODS}
+    assert row["hours"] == pytest.approx({m: np.mean(w) / 3600 for m, w in walls.items()})
+    short = table.table_lines([row], table.SHORT)
+    assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]
+    assert short[0] == "| " + " | ".join(table.SHORT) + " |" and "permutation p" not in short[0]
     assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
 
 
 def test_stored_table_table_is_what_the_committed_runs_give():
-    """The committed table.md, the README's table block and the pilot's decisions (pilot-decisions.md) regenerate from
-    the committed event files."""
+    """The committed table.md, the study README's table block, the root README's short form and the pilot's decisions
+    (pilot-decisions.md) regenerate from the committed event files."""
     study = os.path.join(ROOT, "results", "stored-table")
     subprocess.run([sys.executable, os.path.join(study, "table.py"), "--check"], check=True, cwd=ROOT,
                    capture_output=True, text=True)

@@ -2,8 +2,11 @@
 ours, the difference with its CI, p and the power achieved, and the gains in percent; and the tasks' curves side by
 side.
 
-    python results/stored-table/table.py          # writes table.md and curves.png, and the README's table block
-    python results/stored-table/table.py --check  # exit 1 if table.md or the README block is not what the runs give
+    python results/stored-table/table.py          # writes table.md, curves.png and the two READMEs' table blocks
+    python results/stored-table/table.py --check  # exit 1 if table.md or a README block is not what the runs give
+
+The study's README gets the whole table; the root README's results, its short form (the paper's gain, ours, the
+difference, p and the power achieved).
 
 Cheetah-run's row is the stored-noise study's, as committed (its own protocol, 8 seeds per arm, its effect of interest
 79.4). The other tasks' rows come from their primary runs (`runs/`, PROTOCOL.md part 2) once all of them are in; before
@@ -12,9 +15,12 @@ evaluations), mean ± SE over seeds, the one-tailed Welch p of R2N-PEBBLE > PEBB
 percentile bootstrap 95% CI of the difference, each with `analyze.py`'s functions and seeds. The power achieved is that
 of the test for the task's effect of interest (half the paper's relative gain on the pilot PEBBLE's mean, PROTOCOL.md
 rule 4) at the achieved pooled SD and seeds (`analyze.power`). Holm's correction runs over this study's powered tasks
-(the cheetah row's test was its own study's) once all of them are in.
+(the cheetah row's test was its own study's) once all of them are in. Each arm's wall time is the mean over its runs
+of the time from a run's first to its last event, summed over the starts of a resumed run (`analyze.read_folder`):
+one CPU core per run, two runs on the machine at a time.
 """
 import argparse
+import glob
 import os
 import sys
 
@@ -33,6 +39,8 @@ TASKS = dict(list(power.TASKS.items())[:2] + [("cheetah-run", (0.9, 1000, 237.62
 CHEETAH = dict(folder=power.STORED_NOISE, n=8, kind="powered", effect=79.4)  # results/stored-noise/PROTOCOL.md
 MARKERS = ("<!-- table.py: start -->", "<!-- table.py: end -->")
 README = os.path.join(STUDY, "README.md")
+ROOT_MARKERS = ("<!-- results/stored-table/table.py: start -->", "<!-- results/stored-table/table.py: end -->")
+ROOT_README = os.path.join(power.ROOT, "README.md")
 
 
 def task_plan(task: str, study_cv: float):
@@ -51,6 +59,13 @@ def arm_folders(folder: str, method: str, task: str, n: int) -> list:
     folders = [os.path.join(folder, f"{method}__{task}__noise{noise:g}__budget{budget}__seed{seed}")
                for seed in range(1, n + 1)]
     return [f for f in folders if os.path.exists(os.path.join(f, "done"))]
+
+
+def read(folder: str) -> tuple:
+    """(steps, returns) of a run's evaluations and its wall seconds, a resumed run's event files read as one."""
+    [run] = analyze.read_folder(sorted(glob.glob(os.path.join(folder, "events.out.tfevents.*")),
+                                       key=analyze.natural_order))
+    return run.scalars[analyze.EVAL_TAG], run.wall_seconds
 
 
 def primary(returns: np.ndarray) -> float:
@@ -79,7 +94,9 @@ def rows() -> list:
             folders = {m: arm_folders(row["plan"]["folder"], m, task, row["plan"]["n"]) for m in METHODS}
             row["runs_in"] = sum(map(len, folders.values()))
             if all(len(f) == row["plan"]["n"] for f in folders.values()):
-                row["curves"] = {m: [power.curve(f) for f in fs] for m, fs in folders.items()}
+                read_runs = {m: [read(f) for f in fs] for m, fs in folders.items()}
+                row["curves"] = {m: [curve for curve, _ in runs] for m, runs in read_runs.items()}
+                row["hours"] = {m: np.mean([wall for _, wall in runs]) / 3600 for m, runs in read_runs.items()}
                 row["arms"] = {m: np.array([primary(c[1]) for c in cs]) for m, cs in row["curves"].items()}
         out.append(row)
     powered = {r["task"]: r for r in out if r["task"] != "cheetah-run" and r["plan"] and r["plan"]["kind"] == "powered"}
@@ -102,32 +119,46 @@ def percent(x: float) -> str:
     return f"{100 * x:+.1f}%"
 
 
-def table_lines(out: list) -> list:
-    lines = [
-        "| task | noise / budget | paper: PEBBLE | paper: R2N-PEBBLE | paper's gain | ours: PEBBLE | ours: R2N-PEBBLE "
-        "| difference [95% CI] | our gain | Welch p (Holm) | permutation p | power achieved | test |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in out:
-        head = (f"| {r['task']} | {r['noise']:g} / {r['budget']} | {r['paper'][0]:.2f} | {r['paper'][1]:.2f} "
-                f"| {percent(r['paper_gain'])} ")
-        plan = r["plan"]
-        if plan is None:
-            lines.append(head + "| pilot under way | | | | | | | |")
-            continue
-        kind = ("powered, the stored-noise study's" if r["task"] == "cheetah-run" else plan["kind"])
-        if "arms" not in r:
-            lines.append(head + f"| {r['runs_in']} of {2 * plan['n']} runs in | | | | | | | {kind}, "
-                         f"{plan['n']} seeds per arm |")
-            continue
-        (pm, ps), (rm, rs) = (analyze.mean_se(r["arms"][m]) for m in METHODS)
-        n = len(r["arms"][METHODS[0]])
-        holm_p = f" ({r['holm']:.3f})" if "holm" in r else ""
-        lines.append(head + f"| {pm:.1f} ± {ps:.1f} ({n}) | {rm:.1f} ± {rs:.1f} ({n}) "
-                     f"| {rm - pm:+.1f} [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}] | {percent(rm / pm - 1)} "
-                     f"| {r['welch']:.3f}{holm_p} | {r['permutation']:.3f} | {r['power']:.2f} "
-                     f"(for {plan['effect']:+.1f}) | {kind} |")
-    return lines
+COLUMNS = ("task", "noise / budget", "paper: PEBBLE", "paper: R2N-PEBBLE", "paper's gain", "ours: PEBBLE",
+           "ours: R2N-PEBBLE", "difference [95% CI]", "our gain", "Welch p (Holm)", "permutation p", "power achieved",
+           "hours per run (PEBBLE / R2N-PEBBLE)", "test")
+SHORT = ("task", "noise / budget", "paper's gain", "ours: PEBBLE", "ours: R2N-PEBBLE", "difference [95% CI]", "our gain",
+         "Welch p (Holm)", "power achieved", "test")
+
+
+def cells(r: dict) -> dict:
+    """The row's cell per column; a task not yet decided or not yet run fills only a few."""
+    out = {"task": r["task"], "noise / budget": f"{r['noise']:g} / {r['budget']}", "paper: PEBBLE": f"{r['paper'][0]:.2f}",
+           "paper: R2N-PEBBLE": f"{r['paper'][1]:.2f}", "paper's gain": percent(r["paper_gain"])}
+    plan = r["plan"]
+    if plan is None:
+        out["ours: PEBBLE"] = "pilot under way"
+        return out
+    kind = "powered, the stored-noise study's" if r["task"] == "cheetah-run" else plan["kind"]
+    if "arms" not in r:
+        out["ours: PEBBLE"] = f"{r['runs_in']} of {2 * plan['n']} runs in"
+        out["test"] = f"{kind}, {plan['n']} seeds per arm"
+        return out
+    (pm, ps), (rm, rs) = (analyze.mean_se(r["arms"][m]) for m in METHODS)
+    n = len(r["arms"][METHODS[0]])
+    holm_p = f" ({r['holm']:.3f})" if "holm" in r else ""
+    out.update({"ours: PEBBLE": f"{pm:.1f} ± {ps:.1f} ({n})", "ours: R2N-PEBBLE": f"{rm:.1f} ± {rs:.1f} ({n})",
+                "difference [95% CI]": f"{rm - pm:+.1f} [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}]",
+                "our gain": percent(rm / pm - 1), "Welch p (Holm)": f"{r['welch']:.3f}{holm_p}",
+                "permutation p": f"{r['permutation']:.3f}", "power achieved": f"{r['power']:.2f} (for {plan['effect']:+.1f})",
+                "hours per run (PEBBLE / R2N-PEBBLE)": " / ".join(f"{r['hours'][m]:.1f}" for m in METHODS),
+                "test": kind})
+    return out
+
+
+def markdown_row(values) -> str:
+    return "|" + "|".join(f" {v} " if v else " " for v in values) + "|"
+
+
+def table_lines(out: list, columns: tuple = COLUMNS) -> list:
+    """A markdown table of the rows, in the given columns."""
+    return ([markdown_row(columns), "|" + "---|" * len(columns)]
+            + [markdown_row(cells(r).get(c) for c in columns) for r in out])
 
 
 def write_curves(out: list, path: str):
@@ -156,31 +187,31 @@ def write_curves(out: list, path: str):
     fig.savefig(path, dpi=100)
 
 
-def readme_with(block: list) -> str:
-    text = open(README).read()
-    start, end = text.index(MARKERS[0]), text.index(MARKERS[1])
-    return text[: start + len(MARKERS[0])] + "\n" + "\n".join(block) + "\n" + text[end:]
+def readme_with(path: str, markers: tuple, block: list) -> str:
+    """The file's text with its table block replaced."""
+    text = open(path).read()
+    start, end = text.index(markers[0]), text.index(markers[1])
+    return text[: start + len(markers[0])] + "\n" + "\n".join(block) + "\n" + text[end:]
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="compare with the committed table.md and README block")
+    parser.add_argument("--check", action="store_true", help="compare with the committed table.md and README blocks")
     out = rows()
     block = table_lines(out)
-    table_path = os.path.join(STUDY, "table.md")
+    texts = {os.path.join(STUDY, "table.md"): "\n".join(block) + "\n",
+             README: readme_with(README, MARKERS, block),
+             ROOT_README: readme_with(ROOT_README, ROOT_MARKERS, table_lines(out, SHORT))}
     if parser.parse_args().check:
-        stale = [path for path, text in ((table_path, "\n".join(block) + "\n"), (README, readme_with(block)))
-                 if not os.path.exists(path) or open(path).read() != text]
+        stale = [path for path, text in texts.items() if not os.path.exists(path) or open(path).read() != text]
         if stale:
             raise SystemExit(f"not what the runs give: {', '.join(map(os.path.relpath, stale))}; "
                              "regenerate with python results/stored-table/table.py")
-        print("table.md and the README block are what the runs give")
+        print("table.md and the README blocks are what the runs give")
         return
-    readme = readme_with(block)  # read before the file is opened for writing
-    with open(table_path, "w") as f:
-        f.write("\n".join(block) + "\n")
-    with open(README, "w") as f:
-        f.write(readme)
+    for path, text in texts.items():
+        with open(path, "w") as f:
+            f.write(text)
     write_curves(out, os.path.join(STUDY, "curves.png"))
     print("\n".join(block))
 
