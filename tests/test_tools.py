@@ -1605,6 +1605,7 @@ def test_stored_noise_tables_are_committed_once_every_primary_run_is_in():
 
 
 PROBES_TABLE = os.path.join(ROOT, "results", "stored-noise", "analysis-probes", "primary.csv")
+STORED_TABLE_ANALYSIS = os.path.join(ROOT, "results", "stored-table", "analysis", "primary.csv")
 
 
 def test_probe_table_is_committed_once_the_issue_probes_are_in():
@@ -1703,6 +1704,10 @@ def test_stored_noise_probe_table_waits_for_the_issue_probes(tmp_path):
     pytest.param(("results/cheetah-study", "results/stored-noise/probes"), "results/stored-noise/analysis-probes",
                  "pebble", (), marks=pytest.mark.skipif(not os.path.exists(PROBES_TABLE),
                                                         reason="the stored-noise study's probes are under way")),
+    pytest.param(("results/stored-table/runs",), "results/stored-table/analysis", "pebble",
+                 ("r2n_pebble_stored_noise=pebble_stored_noise",),
+                 marks=pytest.mark.skipif(not os.path.exists(STORED_TABLE_ANALYSIS),
+                                          reason="no stored-table primary run is in yet")),
 ])
 def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log_dirs, output_dir, baseline,
                                                                    baseline_for):
@@ -1915,6 +1920,14 @@ def test_stored_table_table_is_what_the_committed_runs_give():
     decisions = subprocess.run([sys.executable, os.path.join(study, "power.py")], check=True, cwd=ROOT,
                                capture_output=True, text=True).stdout
     assert decisions == open(os.path.join(study, "pilot-decisions.md")).read()
+
+
+def test_stored_table_analysis_is_committed_with_the_first_primary_run():
+    """Once a primary run of the stored-table study is committed, so is `analyze.sh`'s analysis/ (the regeneration
+    test above then checks it against every committed run)."""
+    landed = glob.glob(os.path.join(ROOT, "results", "stored-table", "runs", "*", "done"))
+    assert not landed or os.path.exists(STORED_TABLE_ANALYSIS), \
+        f"{len(landed)} primary runs are in: run `bash results/stored-table/analyze.sh` and commit analysis/"
 
 
 @needs_analysis
