@@ -11,7 +11,8 @@ Choices where the issue is silent:
 - Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
 - A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
   with code 0, or stops at a non-finite value, which a resume would meet again (its line is in the marker: the run
-  counts with what it reached); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are
+  counts with what it reached); a run stopped by SIGTERM or SIGUSR2 after saving its state writes `{run_id}.stopped`
+  (the same command resumes it); a failure writes `{run_id}.failed` with the exit code instead. Finished runs are
   skipped by the next call (`--force` reruns them); deleting a marker reruns that run. TensorBoard folders are not
   inspected: the marker is cheap, exact, and works for runs whose folder name carries only env, method, seed and
   time. With a results folder (`--results-dir`, `cpu-study`), a run counts as finished only when
@@ -257,7 +258,7 @@ class Args:
     threads: int = 1
     """CPU threads per run (`OMP_NUM_THREADS`, `MKL_NUM_THREADS` and the scripts' `--threads`)"""
     log_dir: str = "logs"
-    """per-run logs `{run_id}.log` and markers `{run_id}.done` / `{run_id}.failed` (and, with a results folder, each
+    """per-run logs `{run_id}.log` and markers `{run_id}.done` / `.stopped` / `.failed` (and, with a results folder, each
     run's working folder `scratch/{run_id}`, which keeps its checkpoint)"""
     results_dir: Optional[str] = None
     """keep each finished run's TensorBoard event file and log (no checkpoint) in `{results_dir}/{run_id}/`, with a
@@ -503,11 +504,15 @@ def numerics_of(command: tuple) -> str:
 
 # the one line a script prints when a non-finite value stops it (docs/running.md), its exit code 1
 NON_FINITE = re.compile(r"^\S+: error: (non-finite .* at step \d+);", re.M)
+NOT_STARTED = "not started (interrupted)"
+# the one line a script prints when SIGTERM or SIGUSR2 stops it once its state is saved, its exit code 1
+SAVED = re.compile(r"^\S+: (stopped by SIG\w+ [^;\n]*); (?:the )?state [^\n]*saved", re.M)
 
 
 def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     """Append the exit code to the log and write the `.done` (code 0, or a stop at a non-finite value: its `stopped`
-    line names it) or `.failed` marker, whose `seconds` add up the starts of a resumed run (each ended start's time is
+    line names it), `.stopped` (a stop signal, the state saved: the same command resumes it) or `.failed` marker, the
+    last start's, whose `seconds` add up the starts of a resumed run (each ended start's time is
     in its log; a start cut off without an exit line is counted, its seconds unknown). With a results folder, copy the
     run there; a run that left no event file has nothing to keep and counts as failed."""
     with open(spec["log"], "a") as log:
@@ -522,10 +527,13 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
     kept = events or not spec["results"]  # a study's run is what its event files hold
     # a run stopped by a non-finite value would stop there again if resumed: it is finished with what it reached
     stopped = NON_FINITE.findall(started[-1]) if returncode == 1 else []  # in the last start only
-    kind = "done" if (returncode == 0 or stopped) and kept else "failed"
+    saved = SAVED.findall(started[-1]) if returncode == 1 else []
+    kind = "done" if (returncode == 0 or stopped) and kept else "stopped" if saved else "failed"
     summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"
     if stopped:
         summary += f"stopped {stopped[-1]}\n"
+    if kind == "stopped":
+        summary += f"{saved[-1]}, its state saved: the same command resumes it\n"
     summary += f"seconds {sum(starts):.0f} over {len(starts)} start(s)"
     if unended > 0:
         summary += f"; {unended} more start(s) ended without an exit line, their seconds unknown"
@@ -540,6 +548,9 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
         with open(os.path.join(spec["results"], "done"), "w") as f:
             f.write(summary)
+    for stale in ("stopped", "failed"):  # an earlier start's
+        if stale != kind and os.path.exists(spec["log"][:-4] + "." + stale):
+            os.remove(spec["log"][:-4] + "." + stale)
     with open(spec["log"][:-4] + "." + kind, "w") as f:
         f.write(summary)
 
@@ -697,7 +708,7 @@ def run_local(runs: list, args: Args) -> list:
             results.append((run_id, returncode, spec["log"]))
         if not isinstance(error, KeyboardInterrupt):
             raise
-        results += [(run.run_id, "not started (interrupted)", "") for run in pending]
+        results += [(run.run_id, NOT_STARTED, "") for run in pending]
         print("interrupted: running runs terminated (they save their state: the same command resumes them)", flush=True)
     finally:
         for signum, handler in previous.items():
@@ -774,10 +785,13 @@ def main(args: Args) -> int:
             if run.run_id in done_ids:
                 print(f"# done: {run.run_id}")
                 continue
-            failed = marker(args.log_dir, run.run_id, "failed")
-            if os.path.exists(failed):
-                with open(failed) as f:
-                    print(f"# previously failed ({f.readline().strip()}, log {marker(args.log_dir, run.run_id, 'log')})")
+            log = marker(args.log_dir, run.run_id, "log")
+            for kind in ("stopped", "failed"):
+                if os.path.exists(marker(args.log_dir, run.run_id, kind)):
+                    with open(marker(args.log_dir, run.run_id, kind)) as f:
+                        lines = f.read().splitlines()
+                    says = f"{lines[1]} (log {log})" if kind == "stopped" else f"previously failed ({lines[0]}, log {log})"
+                    print(f"# {says}")
             print(shlex.join(run.command))
         print(f"# {len(runs)} runs, {len(done)} already finished, {len(todo)} to run")
         return 0
@@ -794,12 +808,16 @@ def main(args: Args) -> int:
         results = run_slurm(todo, args)
     if results is None:
         return 0
-    failures = [(run_id, code, log) for run_id, code, log in results if code != 0]
-    print(f"{len(results) - len(failures)} runs finished, {len(done)} skipped as already finished, "
-          f"{len(failures)} failed")
+    # an interrupted sweep: runs stopped with their state saved, and runs not started; the same command resumes both
+    stopped = [(run_id, code, log) for run_id, code, log in results
+               if code == NOT_STARTED or (code != 0 and log and os.path.exists(log[:-4] + ".stopped"))]
+    failures = [(run_id, code, log) for run_id, code, log in results if code != 0 and (run_id, code, log) not in stopped]
+    print(f"{len(results) - len(failures) - len(stopped)} runs finished, {len(done)} skipped as already finished, "
+          + (f"{len(stopped)} stopped or not started (the same command resumes them), " if stopped else "")
+          + f"{len(failures)} failed")
     for run_id, code, log in failures:
         print(f"FAILED {run_id}: {describe(code) if isinstance(code, int) else code}, log {log or '-'}")
-    return 1 if failures else 0
+    return 1 if failures or stopped else 0
 
 
 if __name__ == "__main__":

@@ -640,11 +640,11 @@ def start_sweep(tmp_path, signum, handler, patch=""):
     scripts, work = tmp_path / "scripts", tmp_path / "work"
     scripts.mkdir()
     work.mkdir()
-    (scripts / "pebble.py").write_text(
+    (scripts / "pebble.py").write_text(  # its stop: the scripts' line and exit code
         "import signal, sys, time\n"
         "def stop(signum, frame):\n"
-        "    print('state saved on', signal.Signals(signum).name, flush=True)\n"
-        "    sys.exit(1)\n"
+        "    sys.exit(f'pebble: stopped by {signal.Signals(signum).name} after step 0; state saved in state.pt: '\n"
+        "             'run the same command with --run-name x to resume')\n"
         "signal.signal(signal.SIGTERM, stop)\n"
         "open('ready', 'w').close()\n"
         "time.sleep(60)\n")
@@ -672,13 +672,25 @@ def end_of_sweep(launcher, work, signum=None):
     return output, (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.log").read_text()
 
 
-def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path):
+def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path, monkeypatch, capsys):
     """A terminal sends Ctrl-C's SIGINT to its whole foreground process group. The runs are in sessions of their own:
-    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state."""
+    only the launcher gets it, and it stops them with SIGTERM, on which the scripts save their state. Such a run is
+    stopped, not failed: its marker, the summary and `--dry-run` say that the same command resumes it."""
     launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL)  # as in a terminal, however pytest started
     output, log = end_of_sweep(launcher, work, signal.SIGINT)  # what the terminal does
     assert "interrupted: running runs terminated" in output, output
-    assert "state saved on SIGTERM" in log and "KeyboardInterrupt" not in log, log
+    assert "stopped by SIGTERM after step 0; state saved" in log and "KeyboardInterrupt" not in log, log
+    assert "1 stopped or not started (the same command resumes them), 0 failed" in output and "FAILED" not in output
+    assert launcher.returncode == 1
+    run_id = "pebble__cheetah-run__noise0.9__budget1000__seed1"
+    marker = (work / "logs" / f"{run_id}.stopped").read_text().splitlines()
+    assert marker[:2] == ["exit code 1", "stopped by SIGTERM after step 0, its state saved: the same command resumes it"]
+    assert not (work / "logs" / f"{run_id}.failed").exists()
+    monkeypatch.chdir(work)
+    benchmark.main(benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), seeds=(1,),
+                                  script_dir=str(tmp_path / "scripts"), dry_run=True))
+    assert (f"# stopped by SIGTERM after step 0, its state saved: the same command resumes it (log logs/{run_id}.log)"
+            in capsys.readouterr().out)
 
 
 def test_a_stop_signal_inside_a_poll_leaves_the_cleanup_able_to_wait(tmp_path):
@@ -695,7 +707,7 @@ def test_a_stop_signal_inside_a_poll_leaves_the_cleanup_able_to_wait(tmp_path):
     launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL, patch)
     output, log = end_of_sweep(launcher, work)
     assert "interrupted: running runs terminated" in output, output
-    assert "state saved on SIGTERM" in log, log
+    assert "stopped by SIGTERM after step 0; state saved" in log, log
 
 
 def test_one_local_launcher_per_log_folder(fake_scripts, monkeypatch):
@@ -759,9 +771,9 @@ def test_nohup_is_kept_and_runs_stop_with_a_killed_launcher(tmp_path):
         assert launcher.poll() is None and "state saved" not in log.read_text()
         launcher.kill()
         deadline = time.time() + 60
-        while "state saved on SIGTERM" not in log.read_text() and time.time() < deadline:
+        while "stopped by SIGTERM after step 0; state saved" not in log.read_text() and time.time() < deadline:
             time.sleep(0.1)
-        assert "state saved on SIGTERM" in log.read_text()
+        assert "stopped by SIGTERM after step 0; state saved" in log.read_text()
     finally:
         if launcher.poll() is None:
             launcher.kill()
