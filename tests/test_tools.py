@@ -1915,7 +1915,8 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     line = table.table_lines([row])[-1]
     pebble_cell = f"| {np.mean(pebble):.1f} ± {np.std(pebble, ddof=1) / np.sqrt(plan['n']):.1f} ({plan['n']}) |"
     assert pebble_cell in line
-    walls = {m: [table.read(f)[1] for f in table.arm_folders(table.RUNS, m, task, plan["n"])] for m in table.METHODS}
+    walls = {m: [power.read(f).wall_seconds for f in table.arm_folders(table.RUNS, m, task, plan["n"])]
+             for m in table.METHODS}
     assert row["hours"] == pytest.approx({m: np.mean(w) / 3600 for m, w in walls.items()})
     short = table.table_lines([row], table.SHORT)
     assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]

@@ -31,11 +31,16 @@ ARMS = ("pebble_stored_noise", "r2n_pebble_stored_noise", "sac_stored_noise", "a
 SHORT_LENGTH, SHORT_WINDOW = 150_000, (130_000, 140_000, 150_000)  # rule 6: cartpole's shorter length
 
 
-def curve(folder: str) -> tuple:
-    """(steps, returns) of a run's evaluations, a resumed run's files read as one."""
+def read(folder: str) -> "analyze.Run":
+    """A run's event files, a resumed run's read as one."""
     [run] = analyze.read_folder(sorted(glob.glob(os.path.join(folder, "events.out.tfevents.*")),
                                        key=analyze.natural_order))
-    return run.scalars[analyze.EVAL_TAG]
+    return run
+
+
+def curve(folder: str) -> tuple:
+    """(steps, returns) of a run's evaluations."""
+    return read(folder).scalars[analyze.EVAL_TAG]
 
 
 def primary(returns: np.ndarray) -> float:

@@ -20,7 +20,6 @@ of the time from a run's first to its last event, summed over the starts of a re
 one CPU core per run, two runs on the machine at a time.
 """
 import argparse
-import glob
 import os
 import sys
 
@@ -61,13 +60,6 @@ def arm_folders(folder: str, method: str, task: str, n: int) -> list:
     return [f for f in folders if os.path.exists(os.path.join(f, "done"))]
 
 
-def read(folder: str) -> tuple:
-    """(steps, returns) of a run's evaluations and its wall seconds, a resumed run's event files read as one."""
-    [run] = analyze.read_folder(sorted(glob.glob(os.path.join(folder, "events.out.tfevents.*")),
-                                       key=analyze.natural_order))
-    return run.scalars[analyze.EVAL_TAG], run.wall_seconds
-
-
 def primary(returns: np.ndarray) -> float:
     """The primary metric over the finite evaluations: a run stopped by a non-finite value counts with what it
     reached (PROTOCOL.md part 2)."""
@@ -94,9 +86,9 @@ def rows() -> list:
             folders = {m: arm_folders(row["plan"]["folder"], m, task, row["plan"]["n"]) for m in METHODS}
             row["runs_in"] = sum(map(len, folders.values()))
             if all(len(f) == row["plan"]["n"] for f in folders.values()):
-                read_runs = {m: [read(f) for f in fs] for m, fs in folders.items()}
-                row["curves"] = {m: [curve for curve, _ in runs] for m, runs in read_runs.items()}
-                row["hours"] = {m: np.mean([wall for _, wall in runs]) / 3600 for m, runs in read_runs.items()}
+                read = {m: [power.read(f) for f in fs] for m, fs in folders.items()}
+                row["curves"] = {m: [run.scalars[analyze.EVAL_TAG] for run in runs] for m, runs in read.items()}
+                row["hours"] = {m: np.mean([run.wall_seconds for run in runs]) / 3600 for m, runs in read.items()}
                 row["arms"] = {m: np.array([primary(c[1]) for c in cs]) for m, cs in row["curves"].items()}
         out.append(row)
     powered = {r["task"]: r for r in out if r["task"] != "cheetah-run" and r["plan"] and r["plan"]["kind"] == "powered"}
