@@ -1111,10 +1111,11 @@ def test_local_sweep_interrupted_and_rerun_resumes_exactly(tmp_path, monkeypatch
         time.sleep(0.05)
     process.send_signal(signal.SIGTERM)  # not SIGINT: a shell's background job ignores it, as may a CI runner
     output = process.communicate(timeout=300)[0]
-    assert "interrupted: running runs terminated" in output and os.path.exists(f"logs-b/{run_id}.failed")
+    assert "interrupted: running runs terminated" in output and os.path.exists(f"logs-b/{run_id}.stopped")
     assert "stopped by SIGTERM" in open(f"logs-b/{run_id}.log").read()
     result = subprocess.run(sweep, timeout=300, capture_output=True, text=True)
     assert result.returncode == 0 and "1 runs finished" in result.stdout, result.stdout + result.stderr
+    assert os.path.exists(f"logs-b/{run_id}.done") and not os.path.exists(f"logs-b/{run_id}.stopped")
     log = open(f"logs-b/{run_id}.log").read()
     assert "# resumed from its state.pt" in log
     starts = [int(s) for s in re.findall(r"^# exit code -?\d+ after (\d+) s$", log, re.M)]
