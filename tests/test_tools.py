@@ -63,11 +63,15 @@ def hparams_writer(path, env_id, noise, budget, method, seed, **overrides) -> Su
     return writer
 
 
-def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, **overrides):
-    """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags)."""
+def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, labeled=(),
+              **overrides):
+    """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags, and the
+    labels so far after each feedback round: `labeled`, (step, labels) pairs)."""
     path = os.path.join(root, f"{env_id}__{method}__{seed}__{stamp}")
     writer = hparams_writer(path, env_id, noise, budget, method, seed, **overrides)
     writer.add_scalar("charts/episodic_return", 1.0, 100)
+    for step, labels in labeled:
+        writer.add_scalar("pbrl/labeled_feedback", labels, step)
     for i, (step, value) in enumerate(zip(steps, returns)):
         writer.add_scalar("eval/episodic_return", value, step)
         if sparse:
@@ -1835,9 +1839,12 @@ def test_stored_table_pilot_decisions_follow_the_protocol_rules(tmp_path, monkey
     runs = {("pebble_stored_noise", 901): flat(100.0, 300.0), ("pebble_stored_noise", 902): flat(100.0, 500.0),
             ("r2n_pebble_stored_noise", 901): flat(100.0, 600.0), ("sac_stored_noise", 901): flat(100.0, 180.0),
             ("anf_sac_stored_noise", 901): flat(300.0, 700.0)}
+    rounds = [10_000 + 1_200 * i for i in range(100)]  # the last at 128 800
+    labeled = {key: [(step, 4.0 * (i + 1)) for i, step in enumerate(rounds)] for key in runs if "pebble" in key[0]}
     for (method, seed), returns in runs.items():
         folder = power.run_folder("cartpole-swingup", method, seed)
-        write_run(os.path.dirname(folder), "cartpole-swingup", 0.9, 400, method, seed, returns, steps=steps)
+        write_run(os.path.dirname(folder), "cartpole-swingup", 0.9, 400, method, seed, returns, steps=steps,
+                  labeled=labeled.get((method, seed), ()))
         os.replace(os.path.join(os.path.dirname(folder), f"cartpole-swingup__{method}__{seed}__100"), folder)
         open(os.path.join(folder, "done"), "w").close()
     lines = power.report("cartpole-swingup", 0.315)
@@ -1850,6 +1857,19 @@ def test_stored_table_pilot_decisions_follow_the_protocol_rules(tmp_path, monkey
     assert analyze.power(d, 1.0, 10) < 0.5  # cartpole's +8.5%: exploratory, 8 seeds
     assert f"- Seeds (5): 8 per arm, power {analyze.power(d, 1.0, 8):.2f}: exploratory." in lines
     assert "- Length (6): 150000 steps" in lines
+    assert "- Feedback (7): pebble_stored_noise seed 902: 400 of 400 labels in 100 rounds (0 short), the last at step " \
+        "128800." in lines and lines[-1] == "- Feedback (7): unchanged."
+    one_short = [(step, labels - 1 if step >= 50_000 else labels) for step, labels in labeled[("pebble_stored_noise", 901)]]
+    folder = power.run_folder("cartpole-swingup", "pebble_stored_noise", 901)
+    assert power.feedback_used(folder, 400) == (400, 100, 0, 128_800)
+    for file in glob.glob(os.path.join(folder, "events.out.tfevents.*")):
+        os.remove(file)
+    write_run(folder, "cartpole-swingup", 0.9, 400, "pebble_stored_noise", 901, runs[("pebble_stored_noise", 901)],
+              steps=steps, labeled=one_short)  # a round that labels 3 of its 4 queries: 399 labels
+    for file in glob.glob(os.path.join(folder, "*", "events.out.tfevents.*")):
+        os.replace(file, os.path.join(folder, os.path.basename(file)))
+    assert power.feedback_used(folder, 400) == (399, 100, 1, 128_800)
+    assert power.report("cartpole-swingup", 0.315)[-1] == "- Feedback (7): a run could not use it: part 2 says what changes."
     assert power.seeds_for(1.4) == (8, analyze.power(1.4, 1.0, 8), "powered")  # 8 already reach 0.8
     assert power.seeds_for(1.25)[::2] == (9, "powered")
     assert power.seeds_for(0.9)[::2] == (10, "powered")  # 0.8 out of reach, 10 above 0.5

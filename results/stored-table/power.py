@@ -3,7 +3,8 @@
     python results/stored-table/power.py        # one block per task whose pilot runs are in
 
 For each task: does each arm learn (rule 1), the stop rule (2), the spread CV (3), the effect d (4), the seeds per
-arm and whether the task is powered or exploratory (5), and cartpole's length (6). A task whose 5 pilot runs are not
+arm and whether the task is powered or exploratory (5), cartpole's length (6), and whether each PbRL run could use its
+feedback (7: `pbrl/labeled_feedback`, one point per round). A task whose 5 pilot runs are not
 all in is named and skipped. Primary metric: the mean of a run's last 3 evaluations.
 """
 import glob
@@ -29,6 +30,7 @@ TASKS = {
 }
 ARMS = ("pebble_stored_noise", "r2n_pebble_stored_noise", "sac_stored_noise", "anf_sac_stored_noise")
 SHORT_LENGTH, SHORT_WINDOW = 150_000, (130_000, 140_000, 150_000)  # rule 6: cartpole's shorter length
+SPENT_BY, ROUNDS = 129_000, 100  # rule 7: every budget spent by this step, in this many rounds
 
 
 def read(folder: str) -> "analyze.Run":
@@ -51,6 +53,14 @@ def learns(steps: np.ndarray, returns: np.ndarray) -> bool:
     """Rule 1: the primary metric is at least twice the first evaluation and at least 50 above it."""
     first, final = float(returns[0]), primary(returns)
     return final >= 2 * first and final >= first + 50
+
+
+def feedback_used(folder: str, budget: int) -> tuple:
+    """Rule 7 for one PbRL run: (labels, rounds, rounds that labelled fewer than budget/100, the step of the last
+    round). A run uses its feedback when it labels its whole budget in full rounds by step 129 000."""
+    steps, labeled = read(folder).scalars["pbrl/labeled_feedback"]
+    short = int(np.sum(np.diff(labeled, prepend=0.0) < budget / ROUNDS))
+    return int(labeled[-1]), len(steps), short, int(steps[-1])
 
 
 def stored_noise_cv() -> float:
@@ -136,6 +146,12 @@ def report(task: str, study_cv: float) -> list:
             level.append(abs(window - primary(returns)) <= 0.1 * abs(primary(returns)))
         lines.append(f"- Length (6): {SHORT_LENGTH} steps" if all(level) else "- Length (6): 250 000 steps "
                      "(a PbRL run is not within 10% of its primary metric by 150 000)")
+    used = {key: feedback_used(runs[key], budget) for key in runs if not key[0].startswith(("sac", "anf_sac"))}
+    for (method, seed), (labels, rounds, short, last) in used.items():
+        lines.append(f"- Feedback (7): {method} seed {seed}: {labels} of {budget} labels in {rounds} rounds "
+                     f"({short} short), the last at step {last}.")
+    kept = all(u[0] == budget and u[2] == 0 and u[3] <= SPENT_BY for u in used.values())
+    lines.append("- Feedback (7): " + ("unchanged." if kept else "a run could not use it: part 2 says what changes."))
     return lines
 
 
