@@ -509,10 +509,11 @@ NOT_STARTED = "not started (interrupted)"
 SAVED = re.compile(r"^\S+: (stopped by SIG\w+ [^;\n]*); (?:the )?state [^\n]*saved", re.M)
 
 
-def finish_run(spec: dict, returncode: int, seconds: float) -> None:
+def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     """Append the exit code to the log and write the `.done` (code 0, or a stop at a non-finite value: its `stopped`
-    line names it), `.stopped` (a stop signal, the state saved: the same command resumes it) or `.failed` marker, the
-    last start's, whose `seconds` add up the starts of a resumed run (each ended start's time is
+    line names it), `.stopped` (a stop signal, the state saved: the same command resumes it) or `.failed` marker, in
+    place of an earlier start's, and return its kind. Its `seconds` add up the starts of a resumed run (each ended
+    start's time is
     in its log; a start cut off without an exit line is counted, its seconds unknown). With a results folder, copy the
     run there; a run that left no event file has nothing to keep and counts as failed."""
     with open(spec["log"], "a") as log:
@@ -548,11 +549,18 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> None:
         shutil.copy2(spec["log"], os.path.join(spec["results"], "log.txt"))
         with open(os.path.join(spec["results"], "done"), "w") as f:
             f.write(summary)
-    for stale in ("stopped", "failed"):  # an earlier start's
+    for stale in ("done", "stopped", "failed"):  # an earlier start's (a `--force` rerun's `.done` too)
         if stale != kind and os.path.exists(spec["log"][:-4] + "." + stale):
             os.remove(spec["log"][:-4] + "." + stale)
     with open(spec["log"][:-4] + "." + kind, "w") as f:
         f.write(summary)
+    return kind
+
+
+def resumable(code, log: str) -> bool:
+    """A sweep's result that the same command resumes: a run not started, or one stopped with its state saved (its
+    marker, written as it ended, says so). A SLURM job that died gives a message, not an exit code: a failure."""
+    return code == NOT_STARTED or (code == 1 and bool(log) and os.path.exists(log[:-4] + ".stopped"))
 
 
 class RunGroup:
@@ -686,12 +694,12 @@ def run_local(runs: list, args: Args) -> list:
                     continue
                 seconds = time.time() - process.started
                 del active[run_id]  # first: if recording it fails, the cleanup below does not record it again
-                finish_run(spec, returncode, seconds)
+                kind = finish_run(spec, returncode, seconds)
                 results.append((run_id, returncode, spec["log"]))
                 if slots is not None:
                     slots.append(gpu)
-                print(f"{'finished' if returncode == 0 else 'FAILED'} {run_id} ({describe(returncode)}, {seconds:.0f} s)",
-                      flush=True)
+                said = "stopped" if kind == "stopped" else "finished" if returncode == 0 else "FAILED"
+                print(f"{said} {run_id} ({describe(returncode)}, {seconds:.0f} s)", flush=True)
     except BaseException as error:  # Ctrl-C, `kill`, or the launcher's own failure: no run is left running untracked
         for signum in stops:  # a second Ctrl-C would cut the cleanup short while the runs write their states
             signal.signal(signum, signal.SIG_IGN)
@@ -789,9 +797,10 @@ def main(args: Args) -> int:
             for kind in ("stopped", "failed"):
                 if os.path.exists(marker(args.log_dir, run.run_id, kind)):
                     with open(marker(args.log_dir, run.run_id, kind)) as f:
-                        lines = f.read().splitlines()
-                    says = f"{lines[1]} (log {log})" if kind == "stopped" else f"previously failed ({lines[0]}, log {log})"
-                    print(f"# {says}")
+                        lines = f.read().splitlines() or ["?"]
+                    stop = next((line for line in lines if line.startswith("stopped by ")), "stopped")
+                    print(f"# {stop} (log {log})" if kind == "stopped" else
+                          f"# previously failed ({lines[0]}, log {log})")
             print(shlex.join(run.command))
         print(f"# {len(runs)} runs, {len(done)} already finished, {len(todo)} to run")
         return 0
@@ -808,10 +817,12 @@ def main(args: Args) -> int:
         results = run_slurm(todo, args)
     if results is None:
         return 0
-    # an interrupted sweep: runs stopped with their state saved, and runs not started; the same command resumes both
-    stopped = [(run_id, code, log) for run_id, code, log in results
-               if code == NOT_STARTED or (code != 0 and log and os.path.exists(log[:-4] + ".stopped"))]
-    failures = [(run_id, code, log) for run_id, code, log in results if code != 0 and (run_id, code, log) not in stopped]
+    stopped, failures = [], []
+    for run_id, code, log in results:
+        if resumable(code, log):
+            stopped.append(run_id)
+        elif code != 0:
+            failures.append((run_id, code, log))
     print(f"{len(results) - len(failures) - len(stopped)} runs finished, {len(done)} skipped as already finished, "
           + (f"{len(stopped)} stopped or not started (the same command resumes them), " if stopped else "")
           + f"{len(failures)} failed")

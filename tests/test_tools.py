@@ -64,16 +64,19 @@ def hparams_writer(path, env_id, noise, budget, method, seed, **overrides) -> Su
 
 
 def write_run(root, env_id, noise, budget, method, seed, returns, steps=STEPS, stamp=100, sparse=False, labeled=(),
-              **overrides):
+              seconds_per_step=None, **overrides):
     """A run folder as the scripts write it: the hyperparameter table, then eval returns (and sparse tags, and the
-    labels so far after each feedback round: `labeled`, (step, labels) pairs)."""
+    labels so far after each feedback round: `labeled`, (step, labels) pairs). With `seconds_per_step`, an evaluation
+    is stamped that long per step after the table, as if the run took it."""
     path = os.path.join(root, f"{env_id}__{method}__{seed}__{stamp}")
     writer = hparams_writer(path, env_id, noise, budget, method, seed, **overrides)
+    start = time.time()
     writer.add_scalar("charts/episodic_return", 1.0, 100)
     for step, labels in labeled:
         writer.add_scalar("pbrl/labeled_feedback", labels, step)
     for i, (step, value) in enumerate(zip(steps, returns)):
-        writer.add_scalar("eval/episodic_return", value, step)
+        walltime = start + step * seconds_per_step if seconds_per_step else None
+        writer.add_scalar("eval/episodic_return", value, step, walltime=walltime)
         if sparse:
             for net in ("actor", "reward0"):
                 writer.add_scalar(f"sparse/{net}/relevant_degree", 10 + i + seed, step)
@@ -637,6 +640,37 @@ def test_a_run_stopped_by_a_non_finite_value_is_kept_with_what_it_reached(tmp_pa
     assert glob.glob(str(tmp_path / "results" / "r" / "events.out.tfevents.*")) and os.path.exists(tmp_path / "r.done")
 
 
+def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
+    """Either of the scripts' stop lines (pebble.py's `Stopped`: after a step, or while waiting for a person's labels)
+    in the last start, with exit code 1, gives the `.stopped` marker, which names the stop; the line in an earlier
+    start only, or another exit code, gives `.failed`. Each marker replaces the earlier start's."""
+    spec = dict(run_id="r", command=["python", "pebble.py"], threads=1, commit="abc", cwd=str(tmp_path / "scratch"),
+                log=str(tmp_path / "r.log"), results=None)
+    markers = lambda: sorted(p.name for p in tmp_path.glob("r.*") if p.name != "r.log")  # noqa: E731
+    after_step = ("pebble: stopped by SIGTERM after step 5210; state saved in runs/r/state.pt: run the same command "
+                  "with --run-name r to resume")
+    waiting = ("pebble: stopped by SIGUSR2 while waiting for runs/r/labels/3.json; the state before this round is "
+               "saved: run the same command with --run-name r to resume")
+    start = "# started 2026-11-28 01:00:00\nstep=1000\n"
+    for line, stop in ((after_step, "stopped by SIGTERM after step 5210"),
+                       (waiting, "stopped by SIGUSR2 while waiting for runs/r/labels/3.json")):
+        open(spec["log"], "w").write(f"{start}{line}\n")
+        open(tmp_path / "r.failed", "w").close()  # an earlier start's
+        assert benchmark.finish_run(spec, 1, 1.0) == "stopped" and markers() == ["r.stopped"]
+        assert open(tmp_path / "r.stopped").read().splitlines()[1] == \
+            f"{stop}, its state saved: the same command resumes it"
+        assert benchmark.resumable(1, spec["log"]) and not benchmark.resumable("job 7 failed: OOM", spec["log"])
+    for log, code in ((f"{start}{after_step}\n# exit code 1 after 9 s\n{benchmark.RESUMED}{start}", 1),  # earlier
+                      (f"{start}{after_step}\n", 2)):  # not the stop's exit code
+        open(spec["log"], "w").write(log)
+        assert benchmark.finish_run(spec, code, 1.0) == "failed" and markers() == ["r.failed"]
+        assert not benchmark.resumable(code, spec["log"])
+    open(spec["log"], "w").write(start)
+    assert benchmark.finish_run(spec, 0, 1.0) == "done" and markers() == ["r.done"]
+    open(spec["log"], "w").write(f"{start}{after_step}\n")  # a `--force` rerun, stopped
+    assert benchmark.finish_run(spec, 1, 1.0) == "stopped" and markers() == ["r.stopped"]
+
+
 def start_sweep(tmp_path, signum, handler, patch=""):
     """benchmark.py over one fake run that saves its state on SIGTERM, in a process group of its own as a shell starts
     a job, with `signum` set to `handler` and the Python code `patch` run first; returns (the launcher, its work
@@ -689,7 +723,6 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path, monkeypat
     run_id = "pebble__cheetah-run__noise0.9__budget1000__seed1"
     marker = (work / "logs" / f"{run_id}.stopped").read_text().splitlines()
     assert marker[:2] == ["exit code 1", "stopped by SIGTERM after step 0, its state saved: the same command resumes it"]
-    assert not (work / "logs" / f"{run_id}.failed").exists()
     monkeypatch.chdir(work)
     benchmark.main(benchmark.Args(methods=("pebble",), env_ids=("cheetah-run",), seeds=(1,),
                                   script_dir=str(tmp_path / "scripts"), dry_run=True))
@@ -1905,7 +1938,8 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
         budget_id = "none" if method.startswith(("sac", "anf_sac")) else budget
         name = f"{method}__{task}__noise{noise:g}__budget{budget_id}__seed{seed}"
         os.makedirs(folder, exist_ok=True)
-        written = write_run(folder, task, noise, budget, method, seed, flat(100.0, end), steps=steps)
+        written = write_run(folder, task, noise, budget, method, seed, flat(100.0, end), steps=steps,
+                            seconds_per_step=0.02 if method.startswith("r2n") else 0.01)  # 2 500 s or 5 000 s
         os.replace(written, os.path.join(folder, name))
         open(os.path.join(folder, name, "done"), "w").close()
 
@@ -1936,13 +1970,26 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     line = table.table_lines([row])[-1]
     pebble_cell = f"| {np.mean(pebble):.1f} ± {np.std(pebble, ddof=1) / np.sqrt(plan['n']):.1f} ({plan['n']}) |"
     assert pebble_cell in line
-    walls = {m: [power.read(f).wall_seconds for f in table.arm_folders(table.RUNS, m, task, plan["n"])]
-             for m in table.METHODS}
-    assert row["hours"] == pytest.approx({m: np.mean(w) / 3600 for m, w in walls.items()})
+    assert row["hours"] == pytest.approx({"pebble_stored_noise": 2500 / 3600, "r2n_pebble_stored_noise": 5000 / 3600},
+                                         rel=1e-3)
     short = table.table_lines([row], table.SHORT)
     assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]
     assert short[0] == "| " + " | ".join(table.SHORT) + " |" and "permutation p" not in short[0]
     assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
+    for name, path in (("README", "study.md"), ("ROOT_README", "root.md")):  # the blocks, written then checked
+        markers = table.MARKERS if name == "README" else table.ROOT_MARKERS
+        (tmp_path / path).write_text(f"# A page\n\n{markers[0]}\nold\n{markers[1]}\n\nAfter.\n")
+        monkeypatch.setattr(table, name, str(tmp_path / path))
+    monkeypatch.setattr(table, "STUDY", str(tmp_path))
+    monkeypatch.setattr(sys, "argv", ["table.py"])
+    table.main()
+    root = (tmp_path / "root.md").read_text()
+    assert "\n".join(table.table_lines(table.rows(), table.SHORT)) in root and root.endswith("\n\nAfter.\n")
+    monkeypatch.setattr(sys, "argv", ["table.py", "--check"])
+    table.main()
+    (tmp_path / "root.md").write_text(root.replace(" | powered |", " | exploratory |"))
+    with pytest.raises(SystemExit, match="not what the runs give: .*root.md"):
+        table.main()
 
 
 def test_stored_table_table_is_what_the_committed_runs_give():

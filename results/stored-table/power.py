@@ -82,9 +82,14 @@ def seeds_for(d: float) -> tuple:
     return n, powers[n], "powered"
 
 
+def is_pbrl(method: str) -> bool:
+    """A method that learns from preferences (the oracles learn from the true reward, with no budget)."""
+    return not method.startswith(("sac", "anf_sac"))
+
+
 def run_folder(task: str, method: str, seed: int) -> str:
     noise, budget = TASKS[task][:2]
-    budget_id = "none" if method.startswith(("sac", "anf_sac")) else budget
+    budget_id = budget if is_pbrl(method) else "none"
     return os.path.join(PILOT, f"{method}__{task}__noise{noise:g}__budget{budget_id}__seed{seed}")
 
 
@@ -146,7 +151,7 @@ def report(task: str, study_cv: float) -> list:
             level.append(abs(window - primary(returns)) <= 0.1 * abs(primary(returns)))
         lines.append(f"- Length (6): {SHORT_LENGTH} steps" if all(level) else "- Length (6): 250 000 steps "
                      "(a PbRL run is not within 10% of its primary metric by 150 000)")
-    used = {key: feedback_used(runs[key], budget) for key in runs if not key[0].startswith(("sac", "anf_sac"))}
+    used = {key: feedback_used(runs[key], budget) for key in runs if is_pbrl(key[0])}
     for (method, seed), (labels, rounds, short, last) in used.items():
         lines.append(f"- Feedback (7): {method} seed {seed}: {labels} of {budget} labels in {rounds} rounds "
                      f"({short} short), the last at step {last}.")
