@@ -148,7 +148,7 @@ STORED_TABLE_PILOT = tuple(
 )
 # Its primary runs (PROTOCOL.md part 2): per task, seeds 1 to n, n from its pilot (`results/stored-table/power.py`).
 # A task enters once part 2 has decided it; the order is the protocol's.
-STORED_TABLE_SEEDS = {"cartpole-swingup": 8, "walker-walk": 8}
+STORED_TABLE_SEEDS = {"cartpole-swingup": 8, "walker-walk": 8, "quadruped-walk": 10}
 STORED_TABLE = tuple(
     Preset((setting,), ("pebble_stored_noise", "r2n_pebble_stored_noise"), tuple(range(1, STORED_TABLE_SEEDS[task] + 1)),
            CHEETAH_FLAGS, ("--feedback-freq", "1200"))
