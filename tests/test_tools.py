@@ -643,7 +643,8 @@ def test_a_run_stopped_by_a_non_finite_value_is_kept_with_what_it_reached(tmp_pa
 def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
     """Either of the scripts' stop lines (pebble.py's `Stopped`: after a step, or while waiting for a person's labels)
     in the last start, with exit code 1, gives the `.stopped` marker, which names the stop; the line in an earlier
-    start only, or another exit code, gives `.failed`. Each marker replaces the earlier start's."""
+    start only, or another exit code, gives `.failed`. SIGTERM's default action (a run stopped as it started)
+    gives `.stopped` too. Each marker replaces the earlier start's."""
     spec = dict(run_id="r", command=["python", "pebble.py"], threads=1, commit="abc", cwd=str(tmp_path / "scratch"),
                 log=str(tmp_path / "r.log"), results=None)
     markers = lambda: sorted(p.name for p in tmp_path.glob("r.*") if p.name != "r.log")  # noqa: E731
@@ -669,6 +670,13 @@ def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
     assert benchmark.finish_run(spec, 0, 1.0) == "done" and markers() == ["r.done"]
     open(spec["log"], "w").write(f"{start}{after_step}\n")  # a `--force` rerun, stopped
     assert benchmark.finish_run(spec, 1, 1.0) == "stopped" and markers() == ["r.stopped"]
+    open(spec["log"], "w").write(start)  # SIGTERM while the script imports, before its handler is set
+    assert benchmark.finish_run(spec, -signal.SIGTERM, 1.0) == "stopped" and markers() == ["r.stopped"]
+    assert open(tmp_path / "r.stopped").read().splitlines()[1] == \
+        "stopped by SIGTERM as it started, before its script took the signal: the same command runs it"
+    assert benchmark.resumable(-signal.SIGTERM, spec["log"])
+    assert benchmark.finish_run(spec, -signal.SIGKILL, 1.0) == "failed" and markers() == ["r.failed"]
+    assert not benchmark.resumable(-signal.SIGKILL, spec["log"])
 
 
 def start_sweep(tmp_path, signum, handler, patch=""):
