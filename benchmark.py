@@ -800,8 +800,9 @@ def main(args: Args) -> int:
                 continue
             log = marker(args.log_dir, run.run_id, "log")
             for kind in ("stopped", "failed"):
-                if os.path.exists(marker(args.log_dir, run.run_id, kind)):
-                    with open(marker(args.log_dir, run.run_id, kind)) as f:
+                path = marker(args.log_dir, run.run_id, kind)
+                if os.path.exists(path):
+                    with open(path) as f:
                         lines = f.read().splitlines() or ["?"]
                     stop = next((line for line in lines if line.startswith("stopped by ")), "stopped")
                     print(f"# {stop} (log {log})" if kind == "stopped" else
