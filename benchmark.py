@@ -511,8 +511,8 @@ SAVED = re.compile(r"^\S+: (stopped by SIG\w+ [^;\n]*); (?:the )?state [^\n]*sav
 
 def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     """Append the exit code to the log and write the `.done` (code 0, or a stop at a non-finite value: its `stopped`
-    line names it), `.stopped` (a stop signal with the state saved, or SIGTERM as the run started: the same command
-    resumes it) or `.failed` marker, in place of an earlier start's, and return its kind. Its `seconds` add up the
+    line names it), `.stopped` (a stop signal with the state saved, or SIGTERM before the script took it over: the
+    same command resumes it) or `.failed` marker, in place of an earlier start's, and return its kind. Its `seconds` add up the
     starts of a resumed run (each ended start's time is in its log; a start cut off without an exit line is counted,
     its seconds unknown). With a results folder, copy the run there; a run that left no event file has nothing to keep
     and counts as failed."""
@@ -529,7 +529,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     # a run stopped by a non-finite value would stop there again if resumed: it is finished with what it reached
     stopped = NON_FINITE.findall(started[-1]) if returncode == 1 else []  # in the last start only
     saved = SAVED.findall(started[-1]) if returncode == 1 else []
-    # SIGTERM's default action: the run was stopped as it started, before its script took the signal over
+    # SIGTERM's default action: the run was stopped before its script took the signal over (as it started)
     starting = returncode == -signal.SIGTERM
     kind = "done" if (returncode == 0 or stopped) and kept else "stopped" if saved or starting else "failed"
     summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"
@@ -538,7 +538,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     if saved:
         summary += f"{saved[-1]}, its state saved: the same command resumes it\n"
     elif starting:
-        summary += "stopped by SIGTERM as it started, before its script took the signal: the same command runs it\n"
+        summary += "stopped by SIGTERM before its script took the signal over: the same command runs it\n"
     summary += f"seconds {sum(starts):.0f} over {len(starts)} start(s)"
     if unended > 0:
         summary += f"; {unended} more start(s) ended without an exit line, their seconds unknown"
@@ -562,10 +562,20 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> str:
 
 
 def resumable(code, log: str) -> bool:
-    """A sweep's result that the same command resumes: a run not started, or one stopped with its state saved or as
-    it started (its marker, written as it ended, says so). A SLURM job that died gives a message, not an exit code: a
-    failure."""
+    """A sweep's result that the same command resumes: a run not started, or one stopped with its state saved or
+    before its script took SIGTERM over (its marker, written as it ended, says so). A SLURM job that died gives a
+    message, not an exit code: a failure."""
     return code == NOT_STARTED or (code in (1, -signal.SIGTERM) and bool(log) and os.path.exists(log[:-4] + ".stopped"))
+
+
+def outcome(code, log: str) -> str:
+    """A sweep's result as its marker says: "stopped" (`resumable`), "finished" (`.done`: exit code 0 with what a
+    study keeps, or a stop at a non-finite value) or "failed" (the rest, a SLURM job that died too)."""
+    if resumable(code, log):
+        return "stopped"
+    if isinstance(code, int) and bool(log) and os.path.exists(log[:-4] + ".done"):
+        return "finished"
+    return "failed"
 
 
 class RunGroup:
@@ -703,7 +713,7 @@ def run_local(runs: list, args: Args) -> list:
                 results.append((run_id, returncode, spec["log"]))
                 if slots is not None:
                     slots.append(gpu)
-                said = "stopped" if kind == "stopped" else "finished" if returncode == 0 else "FAILED"
+                said = {"done": "finished", "stopped": "stopped", "failed": "FAILED"}[kind]
                 print(f"{said} {run_id} ({describe(returncode)}, {seconds:.0f} s)", flush=True)
     except BaseException as error:  # Ctrl-C, `kill`, or the launcher's own failure: no run is left running untracked
         for signum in stops:  # a second Ctrl-C would cut the cleanup short while the runs write their states
@@ -825,9 +835,10 @@ def main(args: Args) -> int:
         return 0
     stopped, failures = [], []
     for run_id, code, log in results:
-        if resumable(code, log):
+        kind = outcome(code, log)
+        if kind == "stopped":
             stopped.append(run_id)
-        elif code != 0:
+        elif kind == "failed":
             failures.append((run_id, code, log))
     print(f"{len(results) - len(failures) - len(stopped)} runs finished, {len(done)} skipped as already finished, "
           + (f"{len(stopped)} stopped or not started (the same command resumes them), " if stopped else "")

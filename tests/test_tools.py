@@ -632,12 +632,14 @@ def test_a_run_stopped_by_a_non_finite_value_is_kept_with_what_it_reached(tmp_pa
         open(spec["log"], "w").write(log)
         benchmark.finish_run(spec, code, 1.0)
         assert os.path.exists(tmp_path / "r.failed") and not os.path.exists(tmp_path / "results" / "r" / "done")
+        assert benchmark.outcome(code, spec["log"]) == "failed"  # the sweep's summary lists it as FAILED
         os.remove(tmp_path / "r.failed")
     open(spec["log"], "w").write(f"# started 2026-11-28 01:00:00\nstep=1000\n{line}\n")
     benchmark.finish_run(spec, 1, 1.0)
     done = open(tmp_path / "results" / "r" / "done").read().splitlines()
     assert done[:2] == ["exit code 1", "stopped non-finite losses/qf1_loss (nan) at step 1210"], done
     assert glob.glob(str(tmp_path / "results" / "r" / "events.out.tfevents.*")) and os.path.exists(tmp_path / "r.done")
+    assert benchmark.outcome(1, spec["log"]) == "finished"  # not FAILED in the sweep's summary, for all its exit code
 
 
 def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
@@ -673,10 +675,11 @@ def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
     open(spec["log"], "w").write(start)  # SIGTERM while the script imports, before its handler is set
     assert benchmark.finish_run(spec, -signal.SIGTERM, 1.0) == "stopped" and markers() == ["r.stopped"]
     assert open(tmp_path / "r.stopped").read().splitlines()[1] == \
-        "stopped by SIGTERM as it started, before its script took the signal: the same command runs it"
-    assert benchmark.resumable(-signal.SIGTERM, spec["log"])
+        "stopped by SIGTERM before its script took the signal over: the same command runs it"
+    assert benchmark.resumable(-signal.SIGTERM, spec["log"]) and benchmark.outcome(-signal.SIGTERM, spec["log"]) == "stopped"
     assert benchmark.finish_run(spec, -signal.SIGKILL, 1.0) == "failed" and markers() == ["r.failed"]
-    assert not benchmark.resumable(-signal.SIGKILL, spec["log"])
+    assert not benchmark.resumable(-signal.SIGTERM, spec["log"])  # its marker is `.failed` now
+    assert benchmark.outcome(-signal.SIGKILL, spec["log"]) == "failed"
 
 
 def start_sweep(tmp_path, signum, handler, patch=""):
@@ -1785,7 +1788,7 @@ def test_committed_study_tables_regenerate_from_the_committed_runs(tmp_path, log
         for column in ("mean", "se", "p_value", "perm_p", "diff", "ci_low", "ci_high"):
             if old[column] == "":
                 assert new[column] == "", (new["method"], column)
-            elif math.isnan(float(old[column])):  # one seed's SE
+            elif math.isnan(float(old[column])):  # a statistic undefined at so few seeds (one seed's SE)
                 assert math.isnan(float(new[column])), (new["method"], column, new[column])
             else:
                 assert math.isclose(float(new[column]), float(old[column]), rel_tol=1e-9, abs_tol=1e-9), \
