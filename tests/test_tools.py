@@ -682,10 +682,11 @@ def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
     assert benchmark.outcome(-signal.SIGKILL, spec["log"]) == "failed"
 
 
-def start_sweep(tmp_path, signum, handler, patch=""):
-    """benchmark.py over one fake run that saves its state on SIGTERM, in a process group of its own as a shell starts
-    a job, with `signum` set to `handler` and the Python code `patch` run first; returns (the launcher, its work
-    folder) once the run is going."""
+def start_sweep(tmp_path, signum, handler, patch="", takes_sigterm=True):
+    """benchmark.py over one fake run that saves its state on SIGTERM (unless not `takes_sigterm`: then SIGTERM's
+    default action ends it, as while a script imports), in a process group of its own as a shell starts a job, with
+    `signum` set to `handler` and the Python code `patch` run first; returns (the launcher, its work folder) once the
+    run is going."""
     scripts, work = tmp_path / "scripts", tmp_path / "work"
     scripts.mkdir()
     work.mkdir()
@@ -694,8 +695,8 @@ def start_sweep(tmp_path, signum, handler, patch=""):
         "def stop(signum, frame):\n"
         "    sys.exit(f'pebble: stopped by {signal.Signals(signum).name} after step 0; state saved in state.pt: '\n"
         "             'run the same command with --run-name x to resume')\n"
-        "signal.signal(signal.SIGTERM, stop)\n"
-        "open('ready', 'w').close()\n"
+        + ("signal.signal(signal.SIGTERM, stop)\n" if takes_sigterm else "")
+        + "open('ready', 'w').close()\n"
         "time.sleep(60)\n")
     launch = f"{patch}import runpy\nrunpy.run_path({os.path.join(ROOT, 'benchmark.py')!r}, run_name='__main__')\n"
     launcher = subprocess.Popen(
@@ -739,6 +740,18 @@ def test_ctrl_c_in_a_terminal_stops_the_runs_through_sigterm(tmp_path, monkeypat
                                   script_dir=str(tmp_path / "scripts"), dry_run=True))
     assert (f"# stopped by SIGTERM after step 0, its state saved: the same command resumes it (log logs/{run_id}.log)"
             in capsys.readouterr().out)
+
+
+def test_a_run_stopped_before_its_script_takes_sigterm_is_stopped_not_failed(tmp_path):
+    """Ctrl-C while a run's script still imports: the launcher's SIGTERM ends it by the default action (exit -15).
+    Nothing was lost, so the sweep counts it as stopped, not failed, and its marker says the same command runs it."""
+    launcher, work = start_sweep(tmp_path, signal.SIGINT, signal.SIG_DFL, takes_sigterm=False)
+    output, log = end_of_sweep(launcher, work, signal.SIGINT)
+    assert "# exit code -15 after" in log, log
+    assert "1 stopped or not started (the same command resumes them), 0 failed" in output and "FAILED" not in output
+    marker = (work / "logs" / "pebble__cheetah-run__noise0.9__budget1000__seed1.stopped").read_text().splitlines()
+    assert marker[:2] == ["exit code -15",
+                          "stopped by SIGTERM before its script took the signal over: the same command runs it"]
 
 
 def test_a_stop_signal_inside_a_poll_leaves_the_cleanup_able_to_wait(tmp_path):
