@@ -11,16 +11,16 @@ Choices where the issue is silent:
 - Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
 - A run is finished when its marker `{log_dir}/{run_id}.done` exists; the launcher writes it when the script exits
   with code 0, or stops at a non-finite value, which a resume would meet again (its line is in the marker: the run
-  counts with what it reached); a run stopped by SIGTERM or SIGUSR2 after saving its state, or by SIGTERM as it
-  starts, writes `{run_id}.stopped` (the same command resumes it); a failure writes `{run_id}.failed` with the exit
-  code instead. Finished runs are skipped by the next call (`--force` reruns them); deleting a marker reruns that
-  run. TensorBoard folders are not inspected: the marker is cheap, exact, and works for runs whose folder name
-  carries only env, method, seed and time. With a results folder (`--results-dir`, `cpu-study`), a run counts as
-  finished only when `{results_dir}/{run_id}/done` exists: the event file, the log and that file, which names the git
-  commit, are what a study commits; the run itself works in `{log_dir}/scratch/{run_id}` (its checkpoint stays
-  there). The run id does not include `--extra` nor a preset's scale flags: a results folder is for one
-  configuration, and its `done` files, not the log folder's markers, which the presets at other scales share
-  (`cpu-study` and `imitate` have 6 run ids in common), say what it holds.
+  counts with what it reached); a run stopped by SIGTERM or SIGUSR2 after saving its state, or by SIGTERM before its
+  script takes the signal over, writes `{run_id}.stopped` (the same command resumes it); a failure writes
+  `{run_id}.failed` with the exit code instead. Finished runs are skipped by the next call (`--force` reruns them);
+  deleting a marker reruns that run. TensorBoard folders are not inspected: the marker is cheap, exact, and works for
+  runs whose folder name carries only env, method, seed and time. With a results folder (`--results-dir`,
+  `cpu-study`), a run counts as finished only when `{results_dir}/{run_id}/done` exists: the event file, the log and
+  that file, which names the git commit, are what a study commits; the run itself works in
+  `{log_dir}/scratch/{run_id}` (its checkpoint stays there). The run id does not include `--extra` nor a preset's
+  scale flags: a results folder is for one configuration, and its `done` files, not the log folder's markers, which
+  the presets at other scales share (`cpu-study` and `imitate` have 6 run ids in common), say what it holds.
 - Local back-end: up to `--workers` runs at once; with `--gpus 0,1`, `--runs-per-gpu K` makes K slots per GPU, handed
   out round-robin (0, 1, 0, 1, ...) and reused as runs end, through `CUDA_VISIBLE_DEVICES`. Every child gets
   `OMP_NUM_THREADS=MKL_NUM_THREADS=--threads` and `--threads`; stdout and stderr go to `{log_dir}/{run_id}.log`.
@@ -512,10 +512,10 @@ SAVED = re.compile(r"^\S+: (stopped by SIG\w+ [^;\n]*); (?:the )?state [^\n]*sav
 def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     """Append the exit code to the log and write the `.done` (code 0, or a stop at a non-finite value: its `stopped`
     line names it), `.stopped` (a stop signal with the state saved, or SIGTERM before the script took it over: the
-    same command resumes it) or `.failed` marker, in place of an earlier start's, and return its kind. Its `seconds` add up the
-    starts of a resumed run (each ended start's time is in its log; a start cut off without an exit line is counted,
-    its seconds unknown). With a results folder, copy the run there; a run that left no event file has nothing to keep
-    and counts as failed."""
+    same command resumes it) or `.failed` marker, in place of an earlier start's, and return its kind. Its `seconds`
+    add up the starts of a resumed run (each ended start's time is in its log; a start cut off without an exit line is
+    counted, its seconds unknown). With a results folder, copy the run there; a run that left no event file has
+    nothing to keep and counts as failed."""
     with open(spec["log"], "a") as log:
         log.write(f"\n# exit code {returncode} after {seconds:.0f} s\n")
     with open(spec["log"]) as log:
@@ -529,7 +529,7 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     # a run stopped by a non-finite value would stop there again if resumed: it is finished with what it reached
     stopped = NON_FINITE.findall(started[-1]) if returncode == 1 else []  # in the last start only
     saved = SAVED.findall(started[-1]) if returncode == 1 else []
-    # SIGTERM's default action: the run was stopped before its script took the signal over (as it started)
+    # SIGTERM's default action: the run was stopped before its script took the signal over (while it started)
     starting = returncode == -signal.SIGTERM
     kind = "done" if (returncode == 0 or stopped) and kept else "stopped" if saved or starting else "failed"
     summary = f"exit code {returncode}{'' if kept else ', no event file'}\n"

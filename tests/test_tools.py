@@ -676,7 +676,8 @@ def test_a_run_stopped_with_its_state_saved_is_stopped_not_failed(tmp_path):
     assert benchmark.finish_run(spec, -signal.SIGTERM, 1.0) == "stopped" and markers() == ["r.stopped"]
     assert open(tmp_path / "r.stopped").read().splitlines()[1] == \
         "stopped by SIGTERM before its script took the signal over: the same command runs it"
-    assert benchmark.resumable(-signal.SIGTERM, spec["log"]) and benchmark.outcome(-signal.SIGTERM, spec["log"]) == "stopped"
+    assert benchmark.resumable(-signal.SIGTERM, spec["log"])
+    assert benchmark.outcome(-signal.SIGTERM, spec["log"]) == "stopped"
     assert benchmark.finish_run(spec, -signal.SIGKILL, 1.0) == "failed" and markers() == ["r.failed"]
     assert not benchmark.resumable(-signal.SIGTERM, spec["log"])  # its marker is `.failed` now
     assert benchmark.outcome(-signal.SIGKILL, spec["log"]) == "failed"
