@@ -618,7 +618,9 @@ class RunGroup:
         for spec, process in going:
             try:  # the run ends its step, saves its state and exits; not `process.wait()`: this signal handler may
                 # have interrupted `__call__` inside `poll`, holding its lock. WNOWAIT leaves the exit status there.
-                code = os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOWAIT).si_status
+                ended = os.waitid(os.P_PID, process.pid, os.WEXITED | os.WNOWAIT)
+                # a run the signal killed (before its script took SIGUSR2 over) as Popen writes it: minus the signal
+                code = ended.si_status if ended.si_code == os.CLD_EXITED else -ended.si_status
             except ChildProcessError:  # already reaped
                 code = process.returncode
             if code == 0:  # it finished as the signal came: its results are complete

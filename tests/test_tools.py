@@ -1031,24 +1031,28 @@ def test_a_start_cut_off_without_an_exit_line_is_counted_in_the_done_file(tmp_pa
 def test_a_slurm_requeue_records_finished_runs_and_resumes_only_the_others(tmp_path):
     """At the time limit, `RunGroup.checkpoint` stops the running runs (SIGUSR2) and requeues only them; a run that
     had already finished, though the job had not yet seen it, gets its `.done`, is not trained again, and is in the
-    requeued task's results."""
+    requeued task's results. A run the signal kills before its script takes SIGUSR2 over is requeued, its exit code
+    written as Popen writes it (minus the signal's number)."""
     python = sys.executable
     stops = ("import signal, sys, time; signal.signal(signal.SIGUSR2, lambda *a: sys.exit(1)); "
              "open('ready', 'w').close(); time.sleep(60)")
+    unhandled = "import time; open('ready', 'w').close(); time.sleep(60)"
     specs = [dict(run_id=name, command=[python, "-c", code], threads=1, commit="abc", cwd=str(tmp_path / name),
                   log=str(tmp_path / f"{name}.log"), results=None)
-             for name, code in (("running", stops), ("finished", "open('ready', 'w').close()"))]
+             for name, code in (("running", stops), ("finished", "open('ready', 'w').close()"), ("starting", unhandled))]
     for spec in specs:
         os.makedirs(spec["cwd"])
     group = benchmark.RunGroup()
     group.finished, group.results = set(), []  # as `__call__` starts
     group.processes = [(spec, benchmark.launch(spec)) for spec in specs]
     deadline = time.time() + 60
-    while not os.path.exists(os.path.join(specs[0]["cwd"], "ready")) and time.time() < deadline:
-        time.sleep(0.05)
+    for spec in (specs[0], specs[2]):
+        while not os.path.exists(os.path.join(spec["cwd"], "ready")) and time.time() < deadline:
+            time.sleep(0.05)
     os.waitid(os.P_PID, group.processes[1][1].pid, os.WEXITED | os.WNOWAIT)  # ended, not yet seen by `__call__`'s poll
     delayed = group.checkpoint(specs)
-    assert [spec["run_id"] for spec in delayed.args[0]] == ["running"]
+    assert [spec["run_id"] for spec in delayed.args[0]] == ["running", "starting"]
+    assert f"\n# exit code -{int(signal.SIGUSR2)} after " in open(tmp_path / "starting.log").read()
     assert delayed.function.earlier == [("finished", 0, specs[1]["log"])]  # the requeued task reports it too
     assert open(tmp_path / "finished.done").read().startswith("exit code 0\nseconds ")
     assert not os.path.exists(tmp_path / "running.done")
