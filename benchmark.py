@@ -1,9 +1,9 @@
 # docs and usage: docs/benchmark.md
 """Launch the paper's experiments: a grid of (method, task, noise, budget, seed) runs, locally or on SLURM.
 
-Presets (`--preset`) are the paper's experiments and this project's studies (docs/benchmark.md); `--methods`, `--env-ids`, `--noises`,
-`--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid. Each run has a
-deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
+Presets (`--preset`) are the paper's experiments and this project's studies (docs/benchmark.md); `--methods`,
+`--env-ids`, `--noises`, `--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid.
+Each run has a deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
 `python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...` plus
 `--extra`, so `analyze.py` groups its TensorBoard run by the method name.
 
