@@ -1953,9 +1953,11 @@ def stored_table_module(name):
     return module
 
 
+@needs_analysis
 def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monkeypatch):
     """table.py: a task's row waits for its pilot, then for all its primary runs, then gives analyze.py's statistics
-    and the power for the pilot's effect of interest; Holm's correction runs over the powered tasks only."""
+    and the power for the pilot's effect of interest; once every pilot is in, Holm's correction runs over this study's
+    powered tasks only (not cheetah-run's, its own study's test, nor an exploratory task)."""
     table = stored_table_module("table")
     power = table.power
     monkeypatch.setattr(power, "PILOT", str(tmp_path / "pilot"))
@@ -1976,9 +1978,10 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
 
     task = "quadruped-walk"  # d = 0.668 / (2 x 0.315) = 1.06: powered
     assert next(r for r in table.rows() if r["task"] == task)["plan"] is None  # the pilot is not in
-    for method, seed, end in (("pebble_stored_noise", 901, 300.0), ("pebble_stored_noise", 902, 340.0),
-                              ("r2n_pebble_stored_noise", 901, 400.0), ("sac_stored_noise", 901, 200.0),
-                              ("anf_sac_stored_noise", 901, 500.0)):
+    pilot = (("pebble_stored_noise", 901, 300.0), ("pebble_stored_noise", 902, 340.0),
+             ("r2n_pebble_stored_noise", 901, 400.0), ("sac_stored_noise", 901, 200.0),
+             ("anf_sac_stored_noise", 901, 500.0))
+    for method, seed, end in pilot:
         run(str(tmp_path / "pilot"), task, method, seed, end)
     plan = power.plan(task, 0.315)
     assert plan["kind"] == "powered" and plan["effect"] == pytest.approx((309.33 / 185.41 - 1) / 2 * 320.0)
@@ -2007,6 +2010,22 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]
     assert short[0] == "| " + " | ".join(table.SHORT) + " |" and "permutation p" not in short[0]
     assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
+    for other in ("cartpole-swingup", "walker-walk"):  # every pilot in: cartpole-swingup's decides it exploratory
+        for method, seed, end in pilot:
+            run(str(tmp_path / "pilot"), other, method, seed, end)
+    decided = power.plan  # walker-walk decided powered at 3 seeds: a family of two powered tasks
+    monkeypatch.setattr(power, "plan", lambda t, cv: dict(decided(t, cv), kind="powered", n=3)
+                        if t == "walker-walk" else decided(t, cv))
+    for seed, (p, r) in enumerate(((200.0, 260.0), (220.0, 250.0), (240.0, 300.0)), start=1):
+        run(str(tmp_path / "runs"), "walker-walk", "pebble_stored_noise", seed, p)
+        run(str(tmp_path / "runs"), "walker-walk", "r2n_pebble_stored_noise", seed, r)
+    out = {r["task"]: r for r in table.rows()}
+    assert out["cheetah-run"]["welch"] < 0.05 and out["cartpole-swingup"]["plan"]["kind"] == "exploratory"
+    family = table.holm({t: out[t]["welch"] for t in ("quadruped-walk", "walker-walk")})
+    assert {t: r["holm"] for t, r in out.items() if "holm" in r} == family
+    assert family["quadruped-walk"] == pytest.approx(2 * out["quadruped-walk"]["welch"])  # the smaller of two p
+    quadruped = table.table_lines([out["quadruped-walk"]])[-1]
+    assert f"| {out['quadruped-walk']['welch']:.3f} ({family['quadruped-walk']:.3f}) |" in quadruped
     for name, path in (("README", "study.md"), ("ROOT_README", "root.md")):  # the blocks, written then checked
         markers = table.MARKERS if name == "README" else table.ROOT_MARKERS
         (tmp_path / path).write_text(f"# A page\n\n{markers[0]}\nold\n{markers[1]}\n\nAfter.\n")
@@ -2021,6 +2040,19 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     (tmp_path / "root.md").write_text(root.replace(" | powered |", " | exploratory |"))
     with pytest.raises(SystemExit, match="not what the runs give: .*root.md"):
         table.main()
+
+
+def test_stored_table_curves_keep_every_step_a_run_reached():
+    """An arm's curve in curves.png: a run stopped by a non-finite value counts until its stop and does not shorten
+    the others; its non-finite evaluation is left out."""
+    table = stored_table_module("table")
+    steps = np.array([10, 20, 30])
+    curves = [(steps, np.array([1.0, 2.0, 3.0])), (steps, np.array([3.0, 4.0, 7.0])), (steps[:2], np.array([5.0, np.inf]))]
+    at, mean, se = table.arm_curve(curves)
+    assert list(at) == [10, 20, 30]
+    assert mean == pytest.approx([3.0, 3.0, 5.0])
+    assert se == pytest.approx([np.std([1, 3, 5], ddof=1) / np.sqrt(3), np.std([2, 4], ddof=1) / np.sqrt(2),
+                                np.std([3, 7], ddof=1) / np.sqrt(2)])
 
 
 def test_stored_table_table_is_what_the_committed_runs_give():

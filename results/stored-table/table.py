@@ -22,6 +22,7 @@ one CPU core per run, two runs on the machine at a time.
 import argparse
 import os
 import sys
+import warnings
 
 import numpy as np
 
@@ -153,6 +154,19 @@ def table_lines(out: list, columns: tuple = COLUMNS) -> list:
             + [markdown_row(cells(r).get(c) for c in columns) for r in out])
 
 
+def arm_curve(curves: list) -> tuple:
+    """An arm's (steps, mean, SE) over its runs' evaluation curves, as `analyze.py`'s: a run stopped by a non-finite
+    value counts with the evaluations it reached and does not shorten the others."""
+    steps = max((c[0] for c in curves), key=len)
+    values = np.full((len(curves), len(steps)), np.nan)
+    for row, (_, returns) in zip(values, curves):
+        row[: len(returns)] = np.where(np.isfinite(returns), returns, np.nan)
+    with warnings.catch_warnings():  # a step that one run reached alone has no SE
+        warnings.simplefilter("ignore", RuntimeWarning)
+        se = np.nanstd(values, axis=0, ddof=1) / np.sqrt(np.isfinite(values).sum(axis=0))
+    return steps, np.nanmean(values, axis=0), se
+
+
 def write_curves(out: list, path: str):
     import matplotlib
 
@@ -167,11 +181,8 @@ def write_curves(out: list, path: str):
             ax.text(0.5, 0.5, "pending", ha="center", va="center", transform=ax.transAxes)
             continue
         for method, colour in zip(METHODS, ("tab:blue", "tab:red")):
-            curves = r["curves"][method]
-            steps = min((c[0] for c in curves), key=len)  # the steps every run reached
-            values = np.array([c[1][: len(steps)] for c in curves])
-            mean, se = values.mean(0), values.std(0, ddof=1) / np.sqrt(len(values))
-            ax.plot(steps, mean, color=colour, label=f"{method} ({len(values)})")
+            steps, mean, se = arm_curve(r["curves"][method])
+            ax.plot(steps, mean, color=colour, label=f"{method} ({len(r['curves'][method])})")
             ax.fill_between(steps, mean - se, mean + se, color=colour, alpha=0.2)
         ax.legend(fontsize=7)
     axes[0][0].set_ylabel("evaluation return (mean ± SE)")
