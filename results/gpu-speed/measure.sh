@@ -16,6 +16,9 @@
 #   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
 #   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide started by
 #              benchmark.py with MPS -> aggregate.csv (one row per configuration, written as each ends)
+#   resume     exact resume under --cuda-graph (issue 44's item 7: surf.py once differed after a SIGKILL): rounds of
+#              tests/test_resume.py's kill test for surf.py, r2n_surf.py and pebble.py (the control), several copies at
+#              once, until the budget -> resume.csv (one row per test and round; not run unless PARTS names it)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
 # PARTS="items window": only these parts, in the order PARTS lists them (default: items adam act_store exact window
@@ -57,6 +60,8 @@ if [ "$dry" = "--dry-run" ]; then
   adam_flags=(--device cpu --hidden-dim 32 --batch-size 32 --updates 20 --blocks 1)
   act_store_flags=(--device cpu --hidden-dim 32 --steps 200 --episode-length 100 --blocks 1)
   budget_items=120 budget_lines=120 budget_adam=60 budget_act_store=60 budget_actor=30 budget_exact=60 budget_window=150 budget_aggregate=150
+  budget_resume=150
+  resume_env="" resume_copies=1 resume_round=140 resume_scripts=(surf.py)  # on the CPU: one test, once
   declare -A config_budget=([x2]=70 [x2-benchmark]=80)
 else
   base=(--env-id cheetah-run --noise 0.9 --learning-starts 1000 --unsup-steps 1000 --threads 1 --log-freq 100)
@@ -83,6 +88,9 @@ else
   # adam: 2 scripts x 4 arms x 5 passes of 200 updates, at most about 4 ms each (about 32 s), plus the imports
   budget_items=45 budget_lines=45 budget_adam=45 budget_act_store=35 budget_actor=20 budget_exact=160
   budget_window=115 budget_aggregate=170
+  # each test runs a tiny run three times (reference, killed, resumed); 4 copies of 3 tests are 12 runs at once
+  budget_resume=190
+  resume_env=graph resume_copies=4 resume_round=90 resume_scripts=(surf.py r2n_surf.py pebble.py)
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
 gpu+=(${EXTRA_FLAGS:-})
@@ -92,7 +100,8 @@ total=0
 plan=""
 for part in "${parts[@]}"; do
   budget="budget_$part"
-  [ -n "${!budget:-}" ] || { echo "PARTS: no part named $part (items lines adam act_store actor exact window aggregate)"
+  [ -n "${!budget:-}" ] || {
+    echo "PARTS: no part named $part (items lines adam act_store actor exact window aggregate resume)"
     exit 2; }
   total=$((total + ${!budget}))
   plan+="$part ${!budget} s, "
@@ -270,6 +279,38 @@ part_aggregate() {
   done
   mps_quit
   [ -f "$out/aggregate.csv" ] && cat "$out/aggregate.csv"
+}
+
+part_resume() {  # rounds of the kill test, the copies of a round at once, while a whole round fits in the part
+  local end=$((SECONDS + budget_resume)) round=0 ids=()
+  for script in "${resume_scripts[@]}"; do
+    ids+=("tests/test_resume.py::test_killed_at_a_random_moment_resumes_exactly[$script]")
+  done
+  mkdir -p "$work/resume"
+  echo "round,copy,test,outcome,message" > "$out/resume.csv"
+  while [ $((end - SECONDS)) -ge "$resume_round" ]; do
+    round=$((round + 1))
+    for copy in $(seq 1 "$resume_copies"); do
+      local name="$work/resume/$round-$copy"
+      (cd "$root" && R2N_TEST_CUDA=$resume_env exec timeout -s KILL "$resume_round" "$py" -m pytest -q \
+        -p no:cacheprovider "${ids[@]}" -n "${#ids[@]}" --basetemp "$name" --junitxml="$name.xml" > "$name.log" 2>&1) &
+      pids+=($!)
+    done
+    wait_runs
+    for copy in $(seq 1 "$resume_copies"); do
+      local name="$work/resume/$round-$copy"
+      if [ -f "$name.xml" ]; then
+        "$py" "$helper" exact "$name.xml" "$name.csv" > /dev/null
+        tail -n +2 "$name.csv" | sed "s/^/$round,$copy,/" >> "$out/resume.csv"
+      else
+        local last
+        last=$(tail -1 "$name.log" | tr ',' ';')
+        echo "$round,$copy,all,cut off at the round's $resume_round s,$last" >> "$out/resume.csv"
+      fi
+      grep -h -m 3 -E "differs|Error" "$name.log" | sed "s/^/resume $round-$copy: /"
+    done
+  done
+  cat "$out/resume.csv"
 }
 
 for part in "${parts[@]}"; do
