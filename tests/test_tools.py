@@ -2010,6 +2010,7 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]
     assert short[0] == "| " + " | ".join(table.SHORT) + " |" and "permutation p" not in short[0]
     assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
+    assert (table.p_cell(0.0123), table.p_cell(0.001), table.p_cell(0.00077)) == ("0.012", "0.001", "< 0.001")
     for other in ("cartpole-swingup", "walker-walk"):  # every pilot in: cartpole-swingup's decides it exploratory
         for method, seed, end in pilot:
             run(str(tmp_path / "pilot"), other, method, seed, end)
@@ -2025,7 +2026,7 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert {t: r["holm"] for t, r in out.items() if "holm" in r} == family
     assert family["quadruped-walk"] == pytest.approx(2 * out["quadruped-walk"]["welch"])  # the smaller of two p
     quadruped = table.table_lines([out["quadruped-walk"]])[-1]
-    assert f"| {out['quadruped-walk']['welch']:.3f} ({family['quadruped-walk']:.3f}) |" in quadruped
+    assert f"| {table.p_cell(out['quadruped-walk']['welch'])} ({table.p_cell(family['quadruped-walk'])}) |" in quadruped
     for name, path in (("README", "study.md"), ("ROOT_README", "root.md")):  # the blocks, written then checked
         markers = table.MARKERS if name == "README" else table.ROOT_MARKERS
         (tmp_path / path).write_text(f"# A page\n\n{markers[0]}\nold\n{markers[1]}\n\nAfter.\n")

@@ -112,6 +112,11 @@ def percent(x: float) -> str:
     return f"{100 * x:+.1f}%"
 
 
+def p_cell(p: float) -> str:
+    """A p-value to three decimals; one that would print as 0.000 reads as a bound."""
+    return f"{p:.3f}" if p >= 0.001 else "< 0.001"
+
+
 COLUMNS = ("task", "noise / budget", "paper: PEBBLE", "paper: R2N-PEBBLE", "paper's gain", "ours: PEBBLE",
            "ours: R2N-PEBBLE", "difference [95% CI]", "our gain", "Welch p (Holm)", "permutation p", "power achieved",
            "hours per run (PEBBLE / R2N-PEBBLE)", "test")
@@ -134,11 +139,11 @@ def cells(r: dict) -> dict:
         return out
     (pm, ps), (rm, rs) = (analyze.mean_se(r["arms"][m]) for m in METHODS)
     n = len(r["arms"][METHODS[0]])
-    holm_p = f" ({r['holm']:.3f})" if "holm" in r else ""
+    holm_p = f" ({p_cell(r['holm'])})" if "holm" in r else ""
     out.update({"ours: PEBBLE": f"{pm:.1f} ± {ps:.1f} ({n})", "ours: R2N-PEBBLE": f"{rm:.1f} ± {rs:.1f} ({n})",
                 "difference [95% CI]": f"{rm - pm:+.1f} [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}]",
-                "our gain": percent(rm / pm - 1), "Welch p (Holm)": f"{r['welch']:.3f}{holm_p}",
-                "permutation p": f"{r['permutation']:.3f}", "power achieved": f"{r['power']:.2f} (for {plan['effect']:+.1f})",
+                "our gain": percent(rm / pm - 1), "Welch p (Holm)": f"{p_cell(r['welch'])}{holm_p}",
+                "permutation p": p_cell(r["permutation"]), "power achieved": f"{r['power']:.2f} (for {plan['effect']:+.1f})",
                 "hours per run (PEBBLE / R2N-PEBBLE)": " / ".join(f"{r['hours'][m]:.1f}" for m in METHODS),
                 "test": kind})
     return out
