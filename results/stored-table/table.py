@@ -113,7 +113,7 @@ def percent(x: float) -> str:
 
 
 def p_cell(p: float) -> str:
-    """A p-value to three decimals; one that would print as 0.000 reads as a bound."""
+    """A p-value to three decimals; one below 0.001 reads as that bound."""
     return f"{p:.3f}" if p >= 0.001 else "< 0.001"
 
 
