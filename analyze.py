@@ -557,7 +557,10 @@ def fmt(value: float, digits: int = 2) -> str:
 
 
 def fmt_p(p: float, significance: float) -> str:
-    return "" if not math.isfinite(p) else f"{p:.3f}" + ("*" if p < significance else "")
+    """A p-value to three decimals, starred when significant; one below 0.001 reads as that bound."""
+    if not math.isfinite(p):
+        return ""
+    return (f"{p:.3f}" if p >= 0.001 else "< 0.001") + ("*" if p < significance else "")
 
 
 def spaced(n: int) -> str:

@@ -1379,6 +1379,13 @@ def test_power_and_smallest_detectable_effect_against_scipy():
             analyze.smallest_detectable(sd, n)
 
 
+def test_fmt_p_stars_significance_and_bounds_tiny_p():
+    """A p below 0.001 reads as that bound, not as 0.000; the star follows the threshold, not the rounding."""
+    cells = [analyze.fmt_p(p, 0.05) for p in (0.0123, 0.001, 0.00077, 0.05, 0.5, float("nan"))]
+    assert cells == ["0.012*", "0.001*", "< 0.001*", "0.050", "0.500", ""]
+    assert analyze.fmt_p(0.0004, 0.0001) == "< 0.001"
+
+
 @needs_analysis
 def test_early_stop_power_reproduces_its_protocol_and_reads_the_study_only_when_complete(tmp_path):
     """results/early-stop/power.py prints PROTOCOL.md's numbers from the committed cpu-study runs; `--achieved`
