@@ -556,11 +556,14 @@ def fmt(value: float, digits: int = 2) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
+def p_text(p: float) -> str:
+    """A p-value to three decimals; one below 0.001 reads as that bound."""
+    return f"{p:.3f}" if p >= 0.001 else "< 0.001"
+
+
 def fmt_p(p: float, significance: float) -> str:
-    """A p-value to three decimals, starred when significant; one below 0.001 reads as that bound."""
-    if not math.isfinite(p):
-        return ""
-    return (f"{p:.3f}" if p >= 0.001 else "< 0.001") + ("*" if p < significance else "")
+    """A table's p cell: empty when there is no test, starred when significant."""
+    return "" if not math.isfinite(p) else p_text(p) + ("*" if p < significance else "")
 
 
 def spaced(n: int) -> str:

@@ -1381,6 +1381,7 @@ def test_power_and_smallest_detectable_effect_against_scipy():
 
 def test_fmt_p_stars_significance_and_bounds_tiny_p():
     """A p below 0.001 reads as that bound, not as 0.000; the star follows the threshold, not the rounding."""
+    assert (analyze.p_text(0.0123), analyze.p_text(0.001), analyze.p_text(0.00077)) == ("0.012", "0.001", "< 0.001")
     cells = [analyze.fmt_p(p, 0.05) for p in (0.0123, 0.001, 0.00077, 0.05, 0.5, float("nan"))]
     assert cells == ["0.012*", "0.001*", "< 0.001*", "0.050", "0.500", ""]
     assert analyze.fmt_p(0.0004, 0.0001) == "< 0.001"
@@ -2017,7 +2018,6 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert len(short[-1].split("|")) == len(table.SHORT) + 2 and pebble_cell in short[-1]
     assert short[0] == "| " + " | ".join(table.SHORT) + " |" and "permutation p" not in short[0]
     assert table.holm({"a": 0.01, "b": 0.04, "c": 0.03}) == pytest.approx({"a": 0.03, "b": 0.06, "c": 0.06})
-    assert (table.p_cell(0.0123), table.p_cell(0.001), table.p_cell(0.00077)) == ("0.012", "0.001", "< 0.001")
     for other in ("cartpole-swingup", "walker-walk"):  # every pilot in: cartpole-swingup's decides it exploratory
         for method, seed, end in pilot:
             run(str(tmp_path / "pilot"), other, method, seed, end)
@@ -2033,7 +2033,7 @@ def test_stored_table_rows_from_synthetic_pilot_and_primary_runs(tmp_path, monke
     assert {t: r["holm"] for t, r in out.items() if "holm" in r} == family
     assert family["quadruped-walk"] == pytest.approx(2 * out["quadruped-walk"]["welch"])  # the smaller of two p
     quadruped = table.table_lines([out["quadruped-walk"]])[-1]
-    assert f"| {table.p_cell(out['quadruped-walk']['welch'])} ({table.p_cell(family['quadruped-walk'])}) |" in quadruped
+    assert f"| {analyze.p_text(out['quadruped-walk']['welch'])} ({analyze.p_text(family['quadruped-walk'])}) |" in quadruped
     for name, path in (("README", "study.md"), ("ROOT_README", "root.md")):  # the blocks, written then checked
         markers = table.MARKERS if name == "README" else table.ROOT_MARKERS
         (tmp_path / path).write_text(f"# A page\n\n{markers[0]}\nold\n{markers[1]}\n\nAfter.\n")

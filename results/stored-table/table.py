@@ -112,11 +112,6 @@ def percent(x: float) -> str:
     return f"{100 * x:+.1f}%"
 
 
-def p_cell(p: float) -> str:
-    """A p-value to three decimals; one below 0.001 reads as that bound."""
-    return f"{p:.3f}" if p >= 0.001 else "< 0.001"
-
-
 COLUMNS = ("task", "noise / budget", "paper: PEBBLE", "paper: R2N-PEBBLE", "paper's gain", "ours: PEBBLE",
            "ours: R2N-PEBBLE", "difference [95% CI]", "our gain", "Welch p (Holm)", "permutation p", "power achieved",
            "hours per run (PEBBLE / R2N-PEBBLE)", "test")
@@ -139,11 +134,12 @@ def cells(r: dict) -> dict:
         return out
     (pm, ps), (rm, rs) = (analyze.mean_se(r["arms"][m]) for m in METHODS)
     n = len(r["arms"][METHODS[0]])
-    holm_p = f" ({p_cell(r['holm'])})" if "holm" in r else ""
+    holm_p = f" ({analyze.p_text(r['holm'])})" if "holm" in r else ""
     out.update({"ours: PEBBLE": f"{pm:.1f} ± {ps:.1f} ({n})", "ours: R2N-PEBBLE": f"{rm:.1f} ± {rs:.1f} ({n})",
                 "difference [95% CI]": f"{rm - pm:+.1f} [{r['ci'][0]:+.1f}, {r['ci'][1]:+.1f}]",
-                "our gain": percent(rm / pm - 1), "Welch p (Holm)": f"{p_cell(r['welch'])}{holm_p}",
-                "permutation p": p_cell(r["permutation"]), "power achieved": f"{r['power']:.2f} (for {plan['effect']:+.1f})",
+                "our gain": percent(rm / pm - 1), "Welch p (Holm)": f"{analyze.p_text(r['welch'])}{holm_p}",
+                "permutation p": analyze.p_text(r["permutation"]),
+                "power achieved": f"{r['power']:.2f} (for {plan['effect']:+.1f})",
                 "hours per run (PEBBLE / R2N-PEBBLE)": " / ".join(f"{r['hours'][m]:.1f}" for m in METHODS),
                 "test": kind})
     return out
