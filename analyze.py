@@ -557,8 +557,8 @@ def fmt(value: float, digits: int = 2) -> str:
 
 
 def p_text(p: float) -> str:
-    """A p-value to three decimals; one below 0.001 reads as that bound."""
-    return f"{p:.3f}" if p >= 0.001 else "< 0.001"
+    """A p-value to three decimals; one below 0.001 reads as that bound, and NaN stays "nan"."""
+    return "< 0.001" if p < 0.001 else f"{p:.3f}"
 
 
 def fmt_p(p: float, significance: float) -> str:

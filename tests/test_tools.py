@@ -1382,6 +1382,7 @@ def test_power_and_smallest_detectable_effect_against_scipy():
 def test_fmt_p_stars_significance_and_bounds_tiny_p():
     """A p below 0.001 reads as that bound, not as 0.000; the star follows the threshold, not the rounding."""
     assert (analyze.p_text(0.0123), analyze.p_text(0.001), analyze.p_text(0.00077)) == ("0.012", "0.001", "< 0.001")
+    assert analyze.p_text(float("nan")) == "nan"  # no test is not a tiny p
     cells = [analyze.fmt_p(p, 0.05) for p in (0.0123, 0.001, 0.00077, 0.05, 0.5, float("nan"))]
     assert cells == ["0.012*", "0.001*", "< 0.001*", "0.050", "0.500", ""]
     assert analyze.fmt_p(0.0004, 0.0001) == "< 0.001"
