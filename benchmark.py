@@ -45,6 +45,7 @@ import ctypes
 import fcntl
 import glob
 import os
+import platform
 import re
 import shlex
 import shutil
@@ -80,6 +81,11 @@ VARIANTS = {
     "r2n_pebble_agent_as_reward": ("r2n_pebble.py", ("--agent-drop-fraction", "0.2", "--agent-topology-period", "100")),
     # and a repeat of the cheetah study's PEBBLE runs, under a name of its own so that the two are never pooled
     "pebble_repeat": ("pebble.py", ()),
+    # issue 69's study of which sparsity carries R2N's gain: the DST ablation and the sparse-training baselines
+    "r2n_pebble_reward_only_stored_noise": ("r2n_pebble.py", ("--no-sparse-agent", "--no-noise-resample")),
+    "r2n_pebble_agent_only_stored_noise": ("r2n_pebble.py", ("--no-sparse-reward", "--no-noise-resample")),
+    **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",))
+       for m in ("set_pebble", "static_pebble", "l1_pebble", "dropconnect_pebble")},
 }
 # SAC oracles: trained on the true reward, no feedback budget.
 NO_FEEDBACK = frozenset({"sac", "anf_sac", "sac_stored_noise", "anf_sac_stored_noise"})
@@ -91,6 +97,7 @@ class Preset(NamedTuple):
     seeds: tuple
     flags: tuple = ()  # appended to every command of the preset (scale)
     feedback_flags: tuple = ()  # appended to the commands of the PbRL methods (feedback schedule)
+    stage: int = 0  # a preset's parts run stage by stage (each seed-major): a protocol's order of arms
 
 
 # The studies that ran with the noise redrawn name it, so that their commands stay theirs whatever the default.
@@ -159,11 +166,24 @@ STORED_TABLE = tuple(
 IMITATE = (Preset(CPU_STUDY_MAIN, ("pebble", "r2n_pebble"), (1, 2, 3), REDRAWN + CPU_STUDY_FLAGS + (
     "--noise-type", "imitate", "--noise-histograms", os.path.join(ROOT, "results/imitate/cartpole-swingup_histograms.npz"),
 ), CPU_STUDY_FEEDBACK),)  # an absolute path: each run works in its own scratch folder
+# Issue 69's study (results/which-sparsity/PROTOCOL.md, fixed before its first run): which sparsity carries R2N's gain,
+# at the stored-noise study's scale and environment, against its committed PEBBLE and R2N-PEBBLE (seeds 1-8). In the
+# protocol's order: the DST ablation's two arms with R2N-PEBBLE's seeds 9-10, then L1 and DropConnect, then SET and Static.
+WHICH_SPARSITY = tuple(
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"), stage)
+    for methods, seeds, stage in (
+        (("r2n_pebble_agent_only_stored_noise", "r2n_pebble_reward_only_stored_noise"), tuple(range(1, 11)), 0),
+        (("r2n_pebble_stored_noise",), (9, 10), 0),
+        (("l1_pebble_stored_noise", "dropconnect_pebble_stored_noise"), tuple(range(1, 9)), 1),
+        (("set_pebble_stored_noise", "static_pebble_stored_noise"), tuple(range(1, 9)), 2),
+    )
+)
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
 RESULTS = {"cpu-study": "results/cpu-study", "cheetah-pilot": "results/cheetah-pilot", "early-stop": "results/early-stop",
            "cheetah-study": "results/cheetah-study", "imitate": "results/imitate",
            "stored-noise": "results/stored-noise/runs", "redrawn-probes": "results/stored-noise/probes",
-           "stored-table-pilot": "results/stored-table/pilot", "stored-table": "results/stored-table/runs"}
+           "stored-table-pilot": "results/stored-table/pilot", "stored-table": "results/stored-table/runs",
+           "which-sparsity": "results/which-sparsity/runs"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -207,6 +227,8 @@ PRESETS = {
     "stored-table-pilot": STORED_TABLE_PILOT,
     # its primary runs: per task decided by part 2, pebble_stored_noise and r2n_pebble_stored_noise, seeds 1 to n
     "stored-table": STORED_TABLE,
+    # which sparsity carries R2N's gain: 2 DST-ablation arms x 10 seeds, R2N-PEBBLE seeds 9-10, 4 baselines x 8 seeds
+    "which-sparsity": WHICH_SPARSITY,
 }
 
 
@@ -214,7 +236,7 @@ PRESETS = {
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
                              "early-stop", "cheetah-pilot", "cheetah-study", "imitate", "stored-noise",
-                             "redrawn-probes", "stored-table-pilot", "stored-table"]] = None
+                             "redrawn-probes", "stored-table-pilot", "stored-table", "which-sparsity"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
@@ -225,7 +247,7 @@ class Args:
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
     its three exploratory arms with the noise redrawn (`results/stored-noise/probes`); `stored-table-pilot`, the
     pilot of the main table in the stored ENE (`results/stored-table/pilot`), then `stored-table`, its primary runs
-    (`results/stored-table/runs`)"""
+    (`results/stored-table/runs`); `which-sparsity`, which sparsity carries R2N's gain (`results/which-sparsity/runs`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,
     `pebble_stored_noise`, ...); replaces the preset's"""
@@ -365,8 +387,10 @@ def expand(args: Args) -> list:
                     command += ("--seed", str(seed), "--threads", str(args.threads), "--run-name", run_id) + tuple(flags)
                     if part is not None:
                         command += part.flags + (() if budget_m is None else part.feedback_flags)
-                    runs.setdefault(run_id, Run(run_id, method, env, noise, budget_m, seed, command + extra))
-    return sorted(runs.values(), key=lambda run: run.seed)  # stable: within a seed, the preset's order
+                    runs.setdefault(run_id, (0 if part is None else part.stage,
+                                             Run(run_id, method, env, noise, budget_m, seed, command + extra)))
+    # stable: stage by stage, seed-major, within a seed the preset's order
+    return [run for _, run in sorted(runs.values(), key=lambda staged: (staged[0], staged[1].seed))]
 
 
 def marker(log_dir: str, run_id: str, kind: str) -> str:
@@ -497,6 +521,31 @@ def device_of(command: tuple) -> str:
     return f"cuda ({torch.cuda.get_device_name(0)})" if torch.cuda.is_available() else "cpu"
 
 
+def cpu_of() -> str:
+    """The CPU's model, as Linux names it, and the instruction set torch's kernels dispatch on: a run's trajectory
+    depends on both (a virtual machine's model name can be as vague as "Intel(R) Xeon(R) Processor")."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            models = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+    except OSError:
+        models = []
+    model = models[0] if models else (platform.processor() or platform.machine() or "unknown")
+    try:
+        import torch
+
+        return f"{model}, torch CPU capability {torch.backends.cpu.get_cpu_capability()}"
+    except (ImportError, AttributeError):
+        return model
+
+
+def typed_command(command: tuple, root: str = ROOT) -> str:
+    """A run's command as a user types it in the repository: `python`, and the paths under `root` relative to it, so
+    that the line in a `done` file runs on any machine."""
+    words = ["python"] + [os.path.relpath(word, root) if os.path.isabs(word) and word.startswith(root + os.sep)
+                          else word for word in command[1:]]
+    return shlex.join(words)
+
+
 def numerics_of(command: tuple) -> str:
     flags = [flag for flag in NUMERICS_FLAGS if flag in command]
     return " ".join(flags) if flags else "default (eager, FP32)"
@@ -542,9 +591,9 @@ def finish_run(spec: dict, returncode: int, seconds: float) -> str:
     summary += f"seconds {sum(starts):.0f} over {len(starts)} start(s)"
     if unended > 0:
         summary += f"; {unended} more start(s) ended without an exit line, their seconds unknown"
-    summary += f"\ncommand {shlex.join(spec['command'])}\n"
     command = tuple(spec["command"])
-    summary += f"git commit {spec['commit']}\ndevice {device_of(command)}\nnumerics {numerics_of(command)}\n"
+    summary += f"\ncommand {typed_command(command)}\n"
+    summary += f"git commit {spec['commit']}\ndevice {device_of(command)}\ncpu {cpu_of()}\nnumerics {numerics_of(command)}\n"
     if spec["results"] and kind == "done":  # keep the event files and the log; the `done` files come last
         shutil.rmtree(spec["results"], ignore_errors=True)  # what an interrupted copy may have left
         os.makedirs(spec["results"])

@@ -1084,7 +1084,10 @@ def test_real_pebble_run_through_the_launcher_then_analyze(tmp_path, monkeypatch
     assert len(kept) == 3 and kept[0] == "done" and kept[1].startswith("events.out.tfevents.") and kept[2] == "log.txt"
     done = open(f"results/{run_id}/done").read()
     assert "git commit " in done and "# git commit " in log
-    assert "\ndevice cpu\nnumerics default (eager, FP32)\n" in done, done  # the run's TINY flags say --no-cuda
+    assert f"\ndevice cpu\ncpu {benchmark.cpu_of()}\nnumerics default (eager, FP32)\n" in done, done  # TINY says --no-cuda
+    # the command as a user types it in the repository, not with this machine's interpreter and paths
+    assert "\ncommand python pebble.py --exp-name pebble --env-id cartpole-swingup " in done, done
+    assert sys.executable not in done and ROOT not in done, done
     assert not os.path.exists("runs")  # the run worked in its own scratch folder under logs/
     os.remove(f"logs/{run_id}.done")  # only the kept results say it is finished now
     assert benchmark.main(args) == 0 and "nothing to run" in capsys.readouterr().out
@@ -2101,3 +2104,96 @@ def test_stored_table_preset_runs_what_the_pilot_decided():
         assert (part.flags, part.feedback_flags) == (pilot.flags, pilot.feedback_flags)
     assert [p.settings[0][0] for p in benchmark.PRESETS["stored-table"]] == list(benchmark.STORED_TABLE_SEEDS)
     assert os.path.join(ROOT, benchmark.RESULTS["stored-table"]) == stored_table_module("table").RUNS
+
+
+def test_typed_command_makes_the_repository_paths_relative():
+    """A `done` file's command runs anywhere: `python`, the script and any path under the repository relative to it;
+    a path outside the repository stays as it is."""
+    command = ("/opt/venv/bin/python", "/repo/r2n_pebble.py", "--seed", "3", "--noise-histograms",
+               "/repo/results/imitate/h.npz", "--preferences", "/elsewhere/prefs", "--exp-name", "a b")
+    assert benchmark.typed_command(command, root="/repo") == (
+        "python r2n_pebble.py --seed 3 --noise-histograms results/imitate/h.npz --preferences /elsewhere/prefs "
+        "--exp-name 'a b'")
+    assert benchmark.typed_command(("/usr/bin/python3", "/repository/x.py"), root="/repo") == "python /repository/x.py"
+
+
+def test_cpu_of_names_a_model():
+    """The CPU model every `done` file records: a non-empty line."""
+    model = benchmark.cpu_of()
+    assert model and "\n" not in model
+
+
+WHICH_SPARSITY = os.path.join(ROOT, "results", "which-sparsity")
+
+
+def load_study_module(name: str):
+    spec = importlib.util.spec_from_file_location(f"which_sparsity_{name}", os.path.join(WHICH_SPARSITY, f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_which_sparsity_preset_is_the_protocols_runs_in_its_order():
+    """Issue 69's preset: 54 runs, the DST ablation's arms (with R2N-PEBBLE's seeds 9-10) first, then L1 and
+    DropConnect, then SET and Static; every arm stores the noise at the stored-noise study's scale."""
+    runs = benchmark.expand(benchmark.Args(preset="which-sparsity"))
+    assert len(runs) == 54
+    stages = [{r.method for r in runs[:22]}, {r.method for r in runs[22:38]}, {r.method for r in runs[38:]}]
+    assert stages == [{"r2n_pebble_agent_only_stored_noise", "r2n_pebble_reward_only_stored_noise", "r2n_pebble_stored_noise"},
+                      {"l1_pebble_stored_noise", "dropconnect_pebble_stored_noise"},
+                      {"set_pebble_stored_noise", "static_pebble_stored_noise"}]
+    assert sorted(r.seed for r in runs if r.method == "r2n_pebble_stored_noise") == [9, 10]
+    assert [r.seed for r in runs[:22]] == sorted(r.seed for r in runs[:22])  # seed-major within a stage
+    (reference,) = [r for r in benchmark.expand(benchmark.Args(preset="stored-noise")) if r.run_id.endswith("budget1000__seed8")
+                    and r.method == "r2n_pebble_stored_noise"]
+    (new,) = [r for r in runs if r.run_id == reference.run_id.replace("seed8", "seed9")]
+    assert [w for w in new.command if "seed" not in w and w != "9"] == [w for w in reference.command if "seed" not in w and w != "8"]
+    for run in runs:
+        assert "--no-noise-resample" in run.command and run.command[run.command.index("--total-timesteps") + 1] == "250000"
+    flags = {r.method: r.command for r in runs}
+    assert "--no-sparse-reward" in flags["r2n_pebble_agent_only_stored_noise"]
+    assert "--no-sparse-agent" in flags["r2n_pebble_reward_only_stored_noise"]
+
+
+@needs_analysis
+def test_which_sparsity_like_with_like_check(tmp_path):
+    """The committed check says today's code computes what e6130f6 computed; a changed query round or scalar fails it."""
+    module = load_study_module("like_with_like")
+    assert all(same for _, same in (module.compare(arm) for arm in module.ARMS))
+    shutil.copytree(module.FOLDER, tmp_path / "copy")
+    module.FOLDER = str(tmp_path / "copy")
+    digests = tmp_path / "copy" / "today" / "pebble_stored_noise" / "queries.json"
+    changed = json.loads(digests.read_text())
+    changed["3"]["labels"] = "0" * 64
+    digests.write_text(json.dumps(changed))
+    text, same = module.compare("pebble_stored_noise")
+    assert not same and "1 differ" in text, text
+    [events] = glob.glob(str(tmp_path / "copy" / "today" / "r2n_pebble_stored_noise" / "events.*"))
+    os.remove(events)
+    writer = SummaryWriter(str(tmp_path / "copy" / "today" / "r2n_pebble_stored_noise"))
+    for tag in ("losses/qf1_loss", analyze.EVAL_TAG):
+        writer.add_scalar(tag, 1.0, 10_000)
+    writer.close()
+    text, same = module.compare("r2n_pebble_stored_noise")
+    assert not same and "losses/qf1_loss" in text, text
+
+
+@needs_analysis
+def test_which_sparsity_power_is_what_the_protocol_quotes():
+    """PROTOCOL.md's power table comes from power.py on the committed reference arms."""
+    module = load_study_module("power")
+    r2n = module.arm_values(module.REFERENCE, "r2n_pebble_stored_noise")
+    pebble = module.arm_values(module.REFERENCE, "pebble_stored_noise")
+    sd = module.pooled_sd([r2n, pebble])
+    assert (len(r2n), len(pebble), round(sd, 1), round(r2n.mean(), 1)) == (8, 8, 57.0, 258.7)
+    protocol = open(os.path.join(WHICH_SPARSITY, "PROTOCOL.md")).read()
+    effect = lambda arm: (1 - module.ARMS[arm][0] / module.PAPER_R2N) * r2n.mean()
+    planned = {arm: spec[3] for arm, spec in module.ARMS.items()}
+    holm = module.holm_power(r2n.mean(), sd, 10, planned)
+    for arm, row in (("r2n_pebble_reward_only_stored_noise", "H1 reward-only"), ("dropconnect_pebble_stored_noise", "H2 DropConnect"),
+                     ("l1_pebble_stored_noise", "H3 L1")):
+        bound = module.power(effect(arm), sd, planned[arm], 10, 0.05 / 3)
+        assert f"| {row} | -{effect(arm):.1f} | {planned[arm]} vs 10 | {bound:.2f}, {holm[arm]:.2f} |" in protocol, row
+    assert holm["r2n_pebble_reward_only_stored_noise"] >= module.power(effect("r2n_pebble_reward_only_stored_noise"), sd, 10, 10, 0.05 / 3)
+    agent = module.power(effect("r2n_pebble_agent_only_stored_noise"), sd, 10, 10)
+    assert f"| E1 agent-only (alpha 0.05) | -{effect('r2n_pebble_agent_only_stored_noise'):.1f} | 10 vs 10 | {agent:.2f} |" in protocol
