@@ -19,9 +19,10 @@ page asks for the state every 2 s; the app then reads only the files that have c
 Labels you can trust:
 - A round's labels file is written once. The app writes a temporary file, fsyncs it, then hard-links it to
   `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
-  each exactly 0, 1, 0.5 or "skip", the rule the run reads by) is final, and a second answer to its round (another
-  tab, another app, a script) gets HTTP 409 and changes nothing. It gets the mode of the run's other files (0666
-  less the umask).
+  each exactly 0, 1, 0.5 or "skip", the rule the run reads by, with the digest of the queries it answers: the page
+  sends it) is final, and a second answer to its round (another tab, another app, a script) gets HTTP 409 and
+  changes nothing. So do answers to queries that the round's file no longer holds (it was replaced). It gets the
+  mode of the run's other files (0666 less the umask).
 - A person's answers live in the page until the app says they are saved: the tab keeps them (sessionStorage: each
   tab its own, by run and round, for the round's queries only), so a reload or a failed submit (HTTP 500, the app
   gone) loses none, and the page says what failed; a closed tab keeps them only if the browser reopens it
@@ -194,9 +195,10 @@ def labels_path(run_dir: str, round_index: int) -> str:
 LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # a number is a label only written exactly so: not 1.0, 1e0, -0 or 0.50
 
 
-def parse_answers(text: bytes, n: int) -> list:
-    """The answers in `text` if they are valid labels for a round of n queries (the rule the run reads by: a JSON
-    list of n answers, each exactly 0, 1, 0.5 or "skip"); else ValueError, one line saying why."""
+def parse_labels(text: bytes, n: int) -> tuple:
+    """(answers, digest) of `text` if it holds valid labels for a round of n queries, by the rule the run reads by:
+    `{"queries": digest, "answers": list}`, the digest (16 hex digits) naming the queries answered, or a bare list
+    (unbound: digest None); n answers, each exactly 0, 1, 0.5 or "skip". Else ValueError, one line saying why."""
     number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
     try:
         answers = json.loads(text, parse_int=number, parse_float=number, parse_constant=number)
@@ -204,18 +206,36 @@ def parse_answers(text: bytes, n: int) -> list:
         raise ValueError("not JSON: nested too deeply") from None
     except ValueError as e:  # JSONDecodeError, UnicodeDecodeError
         raise ValueError(f"not JSON: {e}") from None
+    digest = None
+    if isinstance(answers, dict) and set(answers) == {"queries", "answers"}:
+        answers, digest = answers["answers"], answers["queries"]
+        if not (isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{16}", digest)):
+            raise ValueError('its "queries" is not a digest of 16 hex digits')
     # true and false are bools, which Python counts as 1 and 0
     if not isinstance(answers, list) or len(answers) != n or any(
             isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
         raise ValueError(f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"')
-    return answers
+    return answers, digest
 
 
-def read_labels(path: str, n: int) -> list:
-    """The answers of the labels file `path` for a round of n queries: ValueError if it is not valid,
+def parse_answers(text: bytes, n: int) -> list:
+    """The answers of `parse_labels`."""
+    return parse_labels(text, n)[0]
+
+
+def read_labels(path: str, n: int) -> tuple:
+    """(answers, digest) of the labels file `path` for a round of n queries: ValueError if it is not valid,
     FileNotFoundError if there is none, another OSError (IsADirectoryError) if it cannot be read."""
     with open(path, "rb") as f:
-        return parse_answers(f.read(), n)
+        return parse_labels(f.read(), n)
+
+
+def answering(digest: Optional[str], queries_digest: str) -> Optional[str]:
+    """Why labels of `digest` do not answer the queries of `queries_digest`, or None (an unbound file: None)."""
+    if digest is None or digest == queries_digest:
+        return None
+    return (f"it answers the queries of digest {digest}, not this round's ({queries_digest}): the queries file was "
+            "replaced after they were shown")
 
 
 LABEL_FILES = ReadOnChange(bytes)  # a labels file's bytes, for the state; a writer reads the file itself, now
@@ -229,12 +249,13 @@ def unreadable(round_index: int, error: OSError) -> str:
             f"move it away (mv {name} {name}.moved), then submit round {round_index}")
 
 
-def is_valid(path: str, n: int) -> bool:
+def is_valid(path: str, n: int, queries_digest: Optional[str] = None) -> bool:
+    """Whether `path` holds valid labels for n queries and, given `queries_digest`, for those queries."""
     try:
-        read_labels(path, n)
+        _, digest = read_labels(path, n)
     except (FileNotFoundError, ValueError):
         return False
-    return True
+    return queries_digest is None or answering(digest, queries_digest) is None
 
 
 def reserve_rejected_name(path: str) -> str:
@@ -250,11 +271,11 @@ def reserve_rejected_name(path: str) -> str:
             k += 1
 
 
-def keeps_existing(path: str, n: int) -> bool:
-    """True if the labels file at `path` is the round's answer (valid, hence final). Else False, and `path` is free
-    for the caller's answers: a malformed file has been moved aside to `{path}.rejected-{unix time}` (whole and
-    atomically: nothing a person wrote is deleted), or the file had gone meanwhile."""
-    if is_valid(path, n):
+def keeps_existing(path: str, n: int, queries_digest: Optional[str] = None) -> bool:
+    """True if the labels file at `path` is the round's answer (valid, for these queries: final). Else False, and
+    `path` is free for the caller's answers: a malformed file, or one for other queries, has been moved aside to
+    `{path}.rejected-{unix time}` (whole and atomically: nothing a person wrote is deleted), or it had gone."""
+    if is_valid(path, n, queries_digest=queries_digest):
         return True
     rejected = reserve_rejected_name(path)
     try:
@@ -262,7 +283,7 @@ def keeps_existing(path: str, n: int) -> bool:
     except FileNotFoundError:
         os.remove(rejected)
         return False
-    if not is_valid(rejected, n):
+    if not is_valid(rejected, n, queries_digest=queries_digest):
         return False
     # between the check and the move, someone replaced the malformed file with a valid one: that is the answer
     try:
@@ -277,17 +298,23 @@ WRITING = threading.Lock()  # the app's own writers, one at a time; the hard lin
 
 
 def write_labels(run_dir: str, round_index: int, body: bytes):
-    """Write the answers in `body` as the round's labels file, once: Refused(409) if a valid one exists, ValueError
-    if the answers are not valid. A reader (the run) sees no file or the whole file, never a part."""
-    n = read_queries(run_dir, round_index).n
-    answers = parse_answers(body, n)
+    """Write the answers in `body` as the round's labels file, once, with the digest of the queries they answer:
+    Refused(409) if a valid one exists, or if `body` names other queries than the round's (its file was replaced
+    after the page showed it); ValueError if the answers are not valid. A reader (the run) sees no file or the whole
+    file, never a part. A body without a digest (a script's) is written as it came, unbound."""
+    queries = read_queries(run_dir, round_index)
+    n = queries.n
+    answers, digest = parse_labels(body, n)
+    mismatch = answering(digest, queries.digest)
+    if mismatch is not None:
+        raise Refused(409, f"round {round_index}'s answers were not saved: {mismatch}; the page shows the new ones")
     path = labels_path(run_dir, round_index)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with WRITING:
         fd, tmp = create_temporary(os.path.dirname(path), f".{round_index}.json.")
         try:
             with os.fdopen(fd, "w") as f:
-                json.dump(answers, f)
+                json.dump(answers if digest is None else {"queries": digest, "answers": answers}, f)
                 f.flush()
                 os.fsync(f.fileno())  # on disk before it is visible under its name
             while True:
@@ -296,7 +323,7 @@ def write_labels(run_dir: str, round_index: int, body: bytes):
                     return
                 except FileExistsError:
                     try:
-                        answered = keeps_existing(path, n)
+                        answered = keeps_existing(path, n, queries_digest=queries.digest)
                     except OSError as e:  # a folder in the way: the person moves it, the page keeps the answers
                         raise Refused(500, unreadable(round_index, e)) from None
                     if answered:
@@ -382,7 +409,9 @@ def state(run_dir: str) -> dict:
         queries = read_queries(run_dir, r)
         task = queries.env_id
         try:
-            answers = parse_answers(LABEL_FILES(labels_path(run_dir, r)), queries.n)
+            answers, answered_digest = parse_labels(LABEL_FILES(labels_path(run_dir, r)), queries.n)
+            if (mismatch := answering(answered_digest, queries.digest)) is not None:
+                raise ValueError(mismatch)  # the run moves it aside and asks again
         except (OSError, ValueError) as e:  # FileNotFoundError: not answered yet
             if pending is None:
                 pending, n, digest = r, queries.n, queries.digest
@@ -611,10 +640,13 @@ async function submit() {
   let failure = null;
   try {
     const reply = await fetch(`/api/labels/${round}`,
-      {method: "POST", headers: {"Content-Type": "application/json"}, body: JSON.stringify(answers)});
-    if (reply.ok || reply.status === 409) {  // saved, here or elsewhere: the answers are told about, then dropped
+      {method: "POST", headers: {"Content-Type": "application/json"},
+       body: JSON.stringify({queries: digest, answers})});  // the digest of the queries these answers are for
+    if (reply.ok || reply.status === 409) {  // saved, or refused for good: the answers are told about, then dropped
+      const refused = reply.ok ? "" : await reply.text();  // answered elsewhere, or the queries were replaced
       $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)`
-        : `round ${round} was already answered, perhaps in another tab: your answers for it were not used`;
+        : refused.includes("already answered")
+        ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used` : refused;
       forget(); round = null; hide();
     } else {
       failure = `HTTP ${reply.status}: ${await reply.text()}`;
@@ -649,6 +681,7 @@ function render() {
     notices.push(`the run is not responding (last heard ${Math.round(state.silent_for)} s ago): ` +
                  "running the same command again resumes it");
   if (t?.phase === "stopped") notices.push(`the run has stopped: ${t.message ?? "no reason given"}`);
+  if (t?.phase === "waiting" && t.message) notices.push(`the run says: ${t.message}`);
   if (state.teacher_problem !== null) notices.push(state.teacher_problem);
   if (storageProblem !== null) notices.push(storageProblem);
   $("notices").replaceChildren(...notices.map((text) => Object.assign(document.createElement("p"), {textContent: text})));

@@ -29,14 +29,12 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
 import dataclasses
-import hashlib
+import importlib
 import importlib.util
-import json
 import math
 import os
 import random
 import signal
-import socket
 import time
 from collections import deque
 from dataclasses import dataclass, field, fields
@@ -155,8 +153,9 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched.
-    # None of them changes what it learns.
+    # Run settings: where the run writes, what it keeps, how it is watched. None of them changes
+    # what it learns, but --compile and --tf32 change its floating-point numerics.
+    # And --teacher and --preferences say where its labels come from.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -191,7 +190,8 @@ class Args:
     threads: Optional[int] = None
     """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+    """log the SAC losses every `log_freq` steps, a host sync; the loop's others are each step's
+    action for the env and the reads of a feedback round and of a topology update"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
     A folder holding a `state.pt` is resumed."""
@@ -216,6 +216,12 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
+    harness_flags |= {"--preferences": args.preferences,
+                      "--teacher external": args.teacher == "external"}
+    given = [flag for flag, on in harness_flags.items() if on]
+    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
+        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
     if args.tf32 and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
     if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
@@ -825,6 +831,8 @@ def feedback_round(sampling: str, loop: Loop, args: Args, reward_model: RewardEn
         )
         trained = {"pbrl/reward_loss": loss, "pbrl/reward_accuracy": accuracy,
                    "pbrl/reward_epochs": epochs}
+        if math.isnan(accuracy):  # every label is "equal": none is right, no accuracy to log
+            del trained["pbrl/reward_accuracy"]
     rb.relabel(reward_model.mean_reward, args.relabel_batch_size)
     return trained
 
@@ -855,6 +863,12 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
 # RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
 # in the PbRL scripts, the query log, the label files and the reward diagnostics.
 # The same in every script (sac.py, anf_sac.py: a subset); tested.
+def harness(module: str):
+    """A module of the run harness's package `r2n_harness`, imported only for the flag that needs it
+    (`validate_args` has checked that the package is there)."""
+    return importlib.import_module(f"r2n_harness.{module}")
+
+
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
     """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
     If a run that started in the same second took that folder (runs of a sweep
@@ -914,138 +928,6 @@ class Progress:
             else f"{hours}h{minutes:02d}m" if hours
             else f"{minutes}m"
         )
-
-
-class CudaGraph:
-    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of
-    hundreds of small kernels from Python. Tensor inputs (a `Batch`'s too) are copied into the
-    graph's own before each replay; other inputs are fixed. The first calls run eagerly on a
-    side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the capture), the next
-    is captured, later ones replay it and return the same output tensors, overwritten. A graph
-    reads the tensors it was captured with: when the agent's networks or optimisers are
-    replaced (PEBBLE's critic reset), a fixed input changes, its `signature` changes or a
-    `.grad` it writes is replaced, it is captured again. A change of device stops the run."""
-    warmup_calls = 2
-
-    def __init__(self, step):
-        self.step, self.graph, self.agent_objects, self.fixed, self.calls = step, None, [], None, 0
-        self.params, self.seen, self.grads = [], None, []
-
-    @staticmethod
-    def tensors(inputs) -> list:
-        return [
-            t
-            for x in inputs
-            for t in (x if isinstance(x, tuple) else [x])
-            if isinstance(t, torch.Tensor)
-        ]
-
-    @staticmethod
-    def parameters(agent) -> list:
-        """The agent's networks' parameters and its own tensors (the temperature)."""
-        return [
-            p
-            for x in vars(agent).values()
-            for p in (
-                x.parameters() if isinstance(x, nn.Module)
-                else [x] if isinstance(x, torch.Tensor)
-                else []
-            )
-        ]
-
-    @staticmethod
-    def tf32() -> tuple:
-        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
-        backend, and there the older flags raise once the newer ones are set."""
-        if hasattr(torch.backends, "fp32_precision"):
-            return (
-                torch.backends.cuda.matmul.fp32_precision,
-                torch.backends.cudnn.conv.fp32_precision,
-                torch.backends.cudnn.rnn.fp32_precision,
-            )
-        return (
-            torch.backends.cuda.matmul.allow_tf32,
-            torch.backends.cudnn.allow_tf32,
-            torch.get_float32_matmul_precision(),
-        )
-
-    @staticmethod
-    def signature(inputs, parameters: list) -> tuple:
-        """What a graph depends on besides tensor values: the inputs' shapes and dtypes,
-        the devices, each parameter's `requires_grad` and storage, the TF32 settings.
-        It reads host attributes only, so a call adds no sync."""
-        tensors = CudaGraph.tensors(inputs)
-        return (
-            tuple((t.shape, t.dtype) for t in tensors),
-            frozenset(t.device for t in tensors + parameters),
-            tuple((p.requires_grad, p.data_ptr()) for p in parameters),
-            CudaGraph.tf32(),
-        )
-
-    def stale(self, agent, inputs) -> bool:
-        """Whether the graph must be captured again; raises where a new capture would be wrong."""
-        objects = list(vars(agent).values())
-        fixed = [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
-        replaced = not self.agent_objects or any(
-            a is not b for a, b in zip(objects, self.agent_objects)
-        )
-        # listing them is slow: once per agent
-        params = self.parameters(agent) if replaced else self.params
-        signature = self.signature(inputs, params)
-        # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
-        if self.seen is not None and signature[1] != self.seen[1]:
-            old, new = (
-                ", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1])
-            )
-            raise RuntimeError(
-                f"--cuda-graph: {self.step.__name__} was captured on {old} "
-                f"and is now called on {new}; a CUDA graph replays on one device"
-            )
-        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
-        # records what eager now runs. A replaced `.grad` (zero_grad's None): a
-        # replay would write the old one, which the optimiser no longer reads.
-        stale = (
-            replaced or fixed != self.fixed or signature != self.seen
-            or any(p.grad is not g for p, g in self.grads)
-        )
-        if stale:  # held here, the replaced objects keep their ids: no false match
-            self.agent_objects = objects
-            self.fixed = fixed
-            self.params = params
-            self.seen = signature
-            self.grads = []
-        return stale
-
-    def __call__(self, agent, *inputs):
-        if self.stale(agent, inputs):
-            self.graph, self.calls = None, 0
-        self.calls += 1
-        if self.calls <= self.warmup_calls:
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):
-                outputs = self.step(agent, *inputs)
-            torch.cuda.current_stream().wait_stream(side)
-            return outputs
-        if self.graph is None:
-            self.inputs = [type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
-                           if isinstance(x, torch.Tensor) else x for x in inputs]
-            before = [(p, p.grad, None if p.grad is None else p.grad._version) for p in self.params]
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                self.outputs = self.step(agent, *self.inputs)
-            # Only the `.grad` tensors the capture created
-            # or added to: another step's may change freely.
-            self.grads = [
-                (p, p.grad)
-                for p, g, v in before
-                if p.grad is not g or (g is not None and g._version != v)
-            ]
-            self.graph = graph  # only once captured: a failed capture is never replayed
-        elif self.tensors(inputs):
-            torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
-        self.graph.replay()
-        return self.outputs
 
 
 # the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
@@ -1418,200 +1300,9 @@ class QueryLog:
                   steps=self.steps[rows], label_sha256=sha256)
 
 
-def read_preferences(path: str) -> dict:
-    """A run's query log as one set of arrays, from its `preferences/` folder (seeded first, then
-    the rounds in order) or a single `.npz` file."""
-    if os.path.isdir(path):
-        rounds = sorted(int(name[:-4]) for name in os.listdir(path)
-                        if name.endswith(".npz") and name[:-4].isdigit())
-        seeded = [f"{path}/seeded.npz"] if os.path.exists(f"{path}/seeded.npz") else []
-        files = seeded + [f"{path}/{r}.npz" for r in rounds]
-    else:
-        files = [path]
-    parts = []
-    for file in files:
-        with np.load(file) as data:
-            parts.append({name: data[name] for name in data.files})
-    if not parts:
-        raise ValueError(f"no preferences files in {path}")
-    joined = {name: np.concatenate([part[name] for part in parts])
-              for name in parts[0] if name != "env_id"}
-    return dict(joined, env_id=parts[0]["env_id"])
-
-
-def load_preferences(path: str, env_id: str, input_dim: int, segment_steps: int,
-                     budget: int) -> dict:
-    """The arrays of an earlier run's query log (`--preferences`): its `preferences/` folder or one
-    `.npz` of it. A ValueError with one line if they do not fit this run."""
-    if not os.path.exists(path):
-        raise ValueError(f"--preferences: no such file or folder: {path}")
-    try:
-        arrays = read_preferences(path)
-        arrays = {name: arrays[name]
-                  for name in ("env_id", "obs", "actions", "true_rewards", "physics", "labels")}
-    except Exception as e:  # not an npz, a missing array
-        raise ValueError(
-            f"--preferences: {path} is not a run's preferences ({type(e).__name__}: {e})"
-        ) from None
-    shape = arrays["obs"].shape[2], arrays["obs"].shape[3] + arrays["actions"].shape[3]
-    if str(arrays["env_id"]) != env_id or shape != (segment_steps, input_dim):
-        raise ValueError(f"--preferences: {path} holds {arrays['env_id']} segments of {shape[0]} "
-                         f"steps x {shape[1]} features; this run needs {env_id}, {segment_steps} x "
-                         f"{input_dim}")
-    if len(arrays["labels"]) > budget:
-        raise ValueError(f"--preferences: {path} holds {len(arrays['labels'])} queries, more than "
-                         f"--max-feedback {budget}")
-    return arrays
-
-
-def add_preferences(preferences: dict, queries: "QueryLog", prefs, loop, run_folder: str,
-                    env_id: str, obs_dim: int, device: torch.device):
-    """An earlier run's labels (`--preferences`): the first pairs of the query log and of the
-    labelled pairs, counted in the budget."""
-    inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
-    queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"],
-                -1, -1)
-    queries.save_round(f"{run_folder}/preferences", env_id, obs_dim, -1)
-    kept = ~np.isnan(preferences["labels"])
-    prefs.add(torch.as_tensor(inputs[kept], device=device),
-              torch.as_tensor(preferences["labels"][kept], device=device))
-    loop.total_feedback, loop.labeled_feedback = len(kept), prefs.size
-
-
-class ExternalTeacher:
-    """`--teacher external` (docs/labelling.md): queries go to `queries/{round}.npz`, labels come
-    from `labels/{round}.json`: a JSON list with, per query, 1 (second segment preferred), 0 (the
-    first), 0.5 (equal) or "skip". The run reads a round's file once it is valid and records its
-    SHA-256. A resume checks that the files it trained on are unchanged (`check_labels_unchanged`).
-    `teacher.json` tells the labelling page what the run does: waiting for a round (rewritten every
-    poll), training (step rewritten every `step_seconds`), finished or stopped."""
-
-    step_seconds = 2.0  # while training, teacher.json's step is rewritten at most this often
-                        # (the page polls every 2 s)
-
-    def __init__(self, folder: str, args, stop_signals: list, poll_seconds: float = 1.0):
-        self.folder, self.stop_signals, self.poll_seconds = folder, stop_signals, poll_seconds
-        self.run = dict(task=args.env_id, run=os.path.basename(folder), pid=os.getpid(),
-                        host=socket.gethostname(), budget=args.max_feedback,
-                        total_steps=args.total_timesteps)
-        # the last status written; when the step was (training seconds)
-        self.status, self.told = None, -math.inf
-
-    def nap(self):
-        """Sleep `poll_seconds`, or until a stop signal. Python resumes a sleep after the signal's
-        handler, so the wait sleeps in short naps to end at once."""
-        until = time.monotonic() + self.poll_seconds
-        while not self.stop_signals and time.monotonic() < until:
-            time.sleep(0.05)
-
-    def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None,
-             message=None):
-        """Write `teacher.json`: what the labelling page shows."""
-        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
-                        labelled=labelled, step=step, message=message))
-
-    def training(self, step: int, seconds: float):
-        """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
-        says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
-        if (self.status is None or self.status["phase"] != "training"
-                or seconds - self.told < self.step_seconds):
-            return
-        self.told = seconds
-        self.write(dict(self.status, step=step))
-
-    def write(self, status: dict):
-        """Write `status` as `teacher.json`, atomically, with the time of writing."""
-        self.status = dict(status, updated=time.time())
-        with open(f"{self.folder}/teacher.json.tmp", "w") as f:
-            json.dump(self.status, f)
-        os.replace(f"{self.folder}/teacher.json.tmp", f"{self.folder}/teacher.json")
-
-    def ask(self, round_index: int, env_id: str, obs_dim: int, segments: torch.Tensor,
-            true_rewards: torch.Tensor, physics: np.ndarray, step: int, asked: int,
-            labelled: int) -> tuple:
-        """Write the round's queries, then wait for a valid labels file. A malformed one gets one
-        line (and the page's notice); the wait goes on. Returns the answered pairs' mask and labels
-        (0 where skipped), both on the segments' device, the file's SHA-256 and seconds waited. A
-        stop signal raises `Stopped`: the state written before the round resumes into it."""
-        rows = segments.cpu().numpy()
-        write_npz(f"{self.folder}/queries/{round_index}.npz", env_id=env_id,
-                  obs=rows[..., :obs_dim], actions=rows[..., obs_dim:], physics=physics,
-                  true_rewards=true_rewards.cpu().numpy())
-        path, n, started, seen, problem = (
-            f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
-        )
-        print(f"waiting for labels: {path}, one per query of "
-              f"{self.folder}/queries/{round_index}.npz (by hand: python label_app.py "
-              f"{self.folder})", flush=True)
-        while True:
-            if self.stop_signals:
-                import gc
-
-                gc.freeze()  # run ends; exit skips collecting torch's and the run's objects (1 s+)
-                raise Stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; the "
-                              f"state before this round is saved: run the same command with "
-                              f"--run-name {self.run['run']} to resume")
-            stamp = os.stat(path).st_mtime_ns if os.path.exists(path) else None
-            if stamp is not None and stamp != seen:
-                seen = stamp
-                folder = os.path.isdir(path)  # in the file's place: one line, and the wait goes on
-                with open(os.devnull if folder else path, "rb") as f:
-                    content = f.read()
-                problem = "a folder, not a file: move it" if folder else labels_problem(content, n)
-                if problem is None:
-                    break
-                problem = f"labels: {path}: {problem}; waiting for a corrected file"
-                print(problem, flush=True)
-            self.tell("waiting", step, asked, labelled, round_index, n, problem)
-            self.nap()
-        answers = np.array([np.nan if a == "skip" else a for a in json.loads(content)], np.float32)
-        keep, labels = (torch.as_tensor(~np.isnan(answers)),
-                        torch.nan_to_num(torch.as_tensor(answers)))
-        self.tell("training", step, asked + n, labelled + int(keep.sum()))
-        sha256 = hashlib.sha256(content).hexdigest()
-        return (keep.to(segments.device), labels.to(segments.device), sha256,
-                time.monotonic() - started)
-
-
-def check_labels_unchanged(folder: str, queries: dict):
-    """On resume (`queries`: the saved `QueryLog`): every labels file the run trained on still holds
-    what it read, or a ValueError says which."""
-    for round_index, recorded in enumerate(queries.get("label_sha256", [])):
-        path = f"{folder}/labels/{round_index}.json"
-        if recorded and file_sha256(path) != recorded:
-            raise ValueError(f"{path} is not the labels file this run trained on (SHA-256 "
-                             f"{recorded[:12]}...); put it back as it was (the run's "
-                             f"preferences/{round_index}.npz holds its labels)")
-
-
-LABEL_NUMBERS = {"0": 0, "1": 1, "0.5": 0.5}  # exactly these spellings: not 1.0, 1e0, -0 or 0.50
-
-
-def labels_problem(content: bytes, n: int) -> Optional[str]:
-    """Why a labels file's bytes are not n valid answers, or None. Valid: a JSON list, each exactly
-    0, 1, 0.5 or "skip". The labelling page checks by the same rule (label_app.parse_answers)."""
-    number = LABEL_NUMBERS.get  # any other number becomes None, which is no label
-    try:
-        answers = json.loads(content, parse_int=number, parse_float=number, parse_constant=number)
-    except (ValueError, RecursionError) as e:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
-        return f"not JSON ({type(e).__name__})"
-    # true and false are bools, which Python counts as 1 and 0
-    if not isinstance(answers, list) or len(answers) != n or any(
-            isinstance(a, bool) or a not in (0, 1, 0.5, "skip") for a in answers):
-        return f'expected a list of {n} answers, each 0, 1, 0.5 or "skip"'
-    return None
-
-
-def file_sha256(path: str) -> Optional[str]:
-    if not os.path.isfile(path):  # a folder in the file's place reads as a missing file
-        return None
-    with open(path, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
-
-
 def run_feedback_round(sampling: str, global_step: int, queries: "QueryLog",
                        diagnostic_positions: torch.Tensor, writer: SummaryWriter, run_folder: str,
-                       external: Optional["ExternalTeacher"], **objects) -> float:
+                       external, **objects) -> float:
     """The method's `feedback_round` in a run: its teacher (`--teacher`), the query log
     (`preferences/`), the round's tags and the finite check. `objects`: what `feedback_round` reads
     and changes, by name. Returns the seconds spent waiting for an external teacher (not training
@@ -1730,16 +1421,16 @@ if __name__ == "__main__":
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
                            args.noise_histograms, args.episode_length)
         input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
-        preferences = args.preferences and load_preferences(
+        preferences = args.preferences and harness("preferences").load_preferences(
             args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback)
         run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
         if resume and args.teacher == "external":
-            check_labels_unchanged(f"runs/{run_name}", resume["objects"]["queries"])
+            harness("external_teacher").check_labels_unchanged(f"runs/{run_name}",
+                                                               resume["objects"]["queries"])
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
     checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    # no overwrite
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
@@ -1764,7 +1455,8 @@ if __name__ == "__main__":
         critic_gradients, actor_gradients, target_update = steps = tuple(map(torch.compile, steps))
     if args.cuda_graph:  # and replayed as CUDA graphs (of the compiled ones with `--compile`)
         torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
-        critic_gradients, actor_gradients, target_update = map(CudaGraph, steps)
+        critic_gradients, actor_gradients, target_update = map(harness("cuda_graph").CudaGraph,
+                                                               steps)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
@@ -1791,7 +1483,8 @@ if __name__ == "__main__":
                                       generator=torch.Generator().manual_seed(args.seed)).to(device)
     loop = Loop()
     if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
-        add_preferences(preferences, queries, prefs, loop, run_folder, args.env_id, obs_dim, device)
+        harness("preferences").add_preferences(preferences, queries, prefs, loop, run_folder,
+                                               args.env_id, obs_dim, device)
     # everything the loop changes, by name: `state.pt` saves and restores exactly these
     saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb,
                  episodes=episodes, prefs=prefs, entropy_stats=entropy_stats, queries=queries,
@@ -1799,8 +1492,8 @@ if __name__ == "__main__":
 
     # TRY NOT TO MODIFY: start the game, or continue it from the saved state
     stop_signals = catch_stop_signals()
-    external = (ExternalTeacher(run_folder, args, stop_signals) if args.teacher == "external"
-                else None)
+    external = (harness("external_teacher").ExternalTeacher(run_folder, args, stop_signals, Stopped)
+                if args.teacher == "external" else None)
     progress = Progress(args.total_timesteps, args.max_feedback,
                         on_step=external.training if external else None)
     obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer,
@@ -1812,9 +1505,8 @@ if __name__ == "__main__":
     pebble_start = args.learning_starts + args.unsup_steps
     objects = dict(  # what a feedback round reads and changes, by name
         loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer,
-        episodes=episodes, prefs=prefs, rb=rb, queries=queries,
+        episodes=episodes, prefs=prefs, rb=rb, queries=queries, external=external,
         diagnostic_positions=diagnostic_positions, writer=writer, run_folder=run_folder,
-        external=external,
     )
     try:
         for global_step in range(start_step, args.total_timesteps):
@@ -1830,8 +1522,7 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
-            # on the host already: no extra sync
-            check_finite({"action": float(env_action.sum())}, global_step)
+            check_finite({"action": float(env_action.sum())}, global_step)  # on the host: no sync
             physics = env.physics_state()  # of `obs`, to render the step again if it is queried
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)

@@ -24,6 +24,7 @@ Only `ene.py`, the noisy environment, is shared with the other scripts.
 `--help` documents every flag.
 """
 import dataclasses
+import importlib
 import importlib.util
 import math
 import os
@@ -97,8 +98,8 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched.
-    # None of them changes what it learns.
+    # Run settings: where the run writes, what it keeps, how it is watched. None of them changes
+    # what it learns, but --compile and --tf32 change its floating-point numerics.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -133,7 +134,8 @@ class Args:
     threads: Optional[int] = None
     """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps (the only host syncs of the training loop)"""
+    """log the SAC losses every `log_freq` steps, a host sync; the loop's others are each step's
+    action for the env and the reads of a feedback round and of a topology update"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
     A folder holding a `state.pt` is resumed."""
@@ -153,6 +155,10 @@ def validate_args(args: Args) -> None:
     ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
     if args.track and importlib.util.find_spec("wandb") is None:
         raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
+    given = [flag for flag, on in harness_flags.items() if on]
+    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
+        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
     if args.tf32 and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
     if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
@@ -471,6 +477,12 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
 # RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
 # in the PbRL scripts, the query log, the label files and the reward diagnostics.
 # The same in every script (sac.py, anf_sac.py: a subset); tested.
+def harness(module: str):
+    """A module of the run harness's package `r2n_harness`, imported only for the flag that needs it
+    (`validate_args` has checked that the package is there)."""
+    return importlib.import_module(f"r2n_harness.{module}")
+
+
 def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
     """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
     If a run that started in the same second took that folder (runs of a sweep
@@ -530,138 +542,6 @@ class Progress:
             else f"{hours}h{minutes:02d}m" if hours
             else f"{minutes}m"
         )
-
-
-class CudaGraph:
-    """`--cuda-graph`: `step(agent, *inputs)` replayed as a CUDA graph, one launch instead of
-    hundreds of small kernels from Python. Tensor inputs (a `Batch`'s too) are copied into the
-    graph's own before each replay; other inputs are fixed. The first calls run eagerly on a
-    side stream, as CUDA asks (autograd's and cuBLAS's buffers exist by the capture), the next
-    is captured, later ones replay it and return the same output tensors, overwritten. A graph
-    reads the tensors it was captured with: when the agent's networks or optimisers are
-    replaced (PEBBLE's critic reset), a fixed input changes, its `signature` changes or a
-    `.grad` it writes is replaced, it is captured again. A change of device stops the run."""
-    warmup_calls = 2
-
-    def __init__(self, step):
-        self.step, self.graph, self.agent_objects, self.fixed, self.calls = step, None, [], None, 0
-        self.params, self.seen, self.grads = [], None, []
-
-    @staticmethod
-    def tensors(inputs) -> list:
-        return [
-            t
-            for x in inputs
-            for t in (x if isinstance(x, tuple) else [x])
-            if isinstance(t, torch.Tensor)
-        ]
-
-    @staticmethod
-    def parameters(agent) -> list:
-        """The agent's networks' parameters and its own tensors (the temperature)."""
-        return [
-            p
-            for x in vars(agent).values()
-            for p in (
-                x.parameters() if isinstance(x, nn.Module)
-                else [x] if isinstance(x, torch.Tensor)
-                else []
-            )
-        ]
-
-    @staticmethod
-    def tf32() -> tuple:
-        """cuBLAS's and cuDNN's TF32 settings. Torch >= 2.9 keeps them per
-        backend, and there the older flags raise once the newer ones are set."""
-        if hasattr(torch.backends, "fp32_precision"):
-            return (
-                torch.backends.cuda.matmul.fp32_precision,
-                torch.backends.cudnn.conv.fp32_precision,
-                torch.backends.cudnn.rnn.fp32_precision,
-            )
-        return (
-            torch.backends.cuda.matmul.allow_tf32,
-            torch.backends.cudnn.allow_tf32,
-            torch.get_float32_matmul_precision(),
-        )
-
-    @staticmethod
-    def signature(inputs, parameters: list) -> tuple:
-        """What a graph depends on besides tensor values: the inputs' shapes and dtypes,
-        the devices, each parameter's `requires_grad` and storage, the TF32 settings.
-        It reads host attributes only, so a call adds no sync."""
-        tensors = CudaGraph.tensors(inputs)
-        return (
-            tuple((t.shape, t.dtype) for t in tensors),
-            frozenset(t.device for t in tensors + parameters),
-            tuple((p.requires_grad, p.data_ptr()) for p in parameters),
-            CudaGraph.tf32(),
-        )
-
-    def stale(self, agent, inputs) -> bool:
-        """Whether the graph must be captured again; raises where a new capture would be wrong."""
-        objects = list(vars(agent).values())
-        fixed = [x for x in inputs if not isinstance(x, (torch.Tensor, tuple))]
-        replaced = not self.agent_objects or any(
-            a is not b for a, b in zip(objects, self.agent_objects)
-        )
-        # listing them is slow: once per agent
-        params = self.parameters(agent) if replaced else self.params
-        signature = self.signature(inputs, params)
-        # A graph replays on its capture's device and stream. A capture elsewhere would mix devices.
-        if self.seen is not None and signature[1] != self.seen[1]:
-            old, new = (
-                ", ".join(sorted(map(str, devices))) for devices in (self.seen[1], signature[1])
-            )
-            raise RuntimeError(
-                f"--cuda-graph: {self.step.__name__} was captured on {old} "
-                f"and is now called on {new}; a CUDA graph replays on one device"
-            )
-        # New shapes, dtypes, storage, requires_grad or TF32 settings: a new capture
-        # records what eager now runs. A replaced `.grad` (zero_grad's None): a
-        # replay would write the old one, which the optimiser no longer reads.
-        stale = (
-            replaced or fixed != self.fixed or signature != self.seen
-            or any(p.grad is not g for p, g in self.grads)
-        )
-        if stale:  # held here, the replaced objects keep their ids: no false match
-            self.agent_objects = objects
-            self.fixed = fixed
-            self.params = params
-            self.seen = signature
-            self.grads = []
-        return stale
-
-    def __call__(self, agent, *inputs):
-        if self.stale(agent, inputs):
-            self.graph, self.calls = None, 0
-        self.calls += 1
-        if self.calls <= self.warmup_calls:
-            side = torch.cuda.Stream()
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):
-                outputs = self.step(agent, *inputs)
-            torch.cuda.current_stream().wait_stream(side)
-            return outputs
-        if self.graph is None:
-            self.inputs = [type(x)(*map(torch.clone, x)) if isinstance(x, tuple) else x.clone()
-                           if isinstance(x, torch.Tensor) else x for x in inputs]
-            before = [(p, p.grad, None if p.grad is None else p.grad._version) for p in self.params]
-            graph = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(graph):
-                self.outputs = self.step(agent, *self.inputs)
-            # Only the `.grad` tensors the capture created
-            # or added to: another step's may change freely.
-            self.grads = [
-                (p, p.grad)
-                for p, g, v in before
-                if p.grad is not g or (g is not None and g._version != v)
-            ]
-            self.graph = graph  # only once captured: a failed capture is never replayed
-        elif self.tensors(inputs):
-            torch._foreach_copy_(self.tensors(self.inputs), self.tensors(inputs))
-        self.graph.replay()
-        return self.outputs
 
 
 # the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
@@ -1022,7 +902,6 @@ if __name__ == "__main__":
         raise SystemExit(f"{args.exp_name}: error: {e}")
     run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
     checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    # no overwrite
     video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
@@ -1047,7 +926,8 @@ if __name__ == "__main__":
         critic_gradients, actor_gradients, target_update = steps = tuple(map(torch.compile, steps))
     if args.cuda_graph:  # and replayed as CUDA graphs (of the compiled ones with `--compile`)
         torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
-        critic_gradients, actor_gradients, target_update = map(CudaGraph, steps)
+        critic_gradients, actor_gradients, target_update = map(harness("cuda_graph").CudaGraph,
+                                                               steps)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
@@ -1088,8 +968,7 @@ if __name__ == "__main__":
 
             # TRY NOT TO MODIFY: execute the game and log data.
             env_action = action.cpu().numpy()
-            # on the host already: no extra sync
-            check_finite({"action": float(env_action.sum())}, global_step)
+            check_finite({"action": float(env_action.sum())}, global_step)  # on the host: no sync
             next_obs, true_reward, terminated, truncated, _ = env.step(env_action)
             loop.episode_actions.append(env_action)
             next_obs = torch.as_tensor(next_obs, device=device)

@@ -44,7 +44,7 @@ def smoke_runs(tmp_path_factory):
     cwds = {script: tmp_path_factory.mktemp(script[:-3]) for script in SMOKE_ARGS}
     with ThreadPoolExecutor(len(SMOKE_ARGS)) as pool:
         futures = {
-            script: pool.submit(run_script, script, args + ["--exp-name", "smoke"], cwds[script], False)
+            script: pool.submit(run_script, script, args + ["--exp-name", "smoke"], cwds[script], False, True)
             for script, args in SMOKE_ARGS.items()
         }
         results = {script: future.result() for script, future in futures.items()}

@@ -18,6 +18,7 @@ from test_numerics import ARGS
 from test_scripts import ROOT, run_script, scalars
 
 sys.path.insert(0, ROOT)
+from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU")
 STEPS = ("critic_gradients", "actor_gradients", "target_update")
 
@@ -70,7 +71,7 @@ def test_critic_reset_is_captured_again_and_trains_the_new_critic(monkeypatch, r
     originals, agents = {name: getattr(module, name) for name in STEPS}, {}
     for mode in ("eager", "graph"):
         for name in STEPS:
-            monkeypatch.setattr(module, name, module.CudaGraph(originals[name]) if mode == "graph" else originals[name])
+            monkeypatch.setattr(module, name, CudaGraph(originals[name]) if mode == "graph" else originals[name])
         agent, args = tiny_agent(module, device)
         loop = module.Loop()
         torch.manual_seed(1)
@@ -101,7 +102,7 @@ def test_a_captured_update_never_syncs_with_the_host(monkeypatch, run_stream):
     module = importlib.import_module("r2n_pebble")  # the sparse optimiser's masked steps included
     device = torch.device("cuda")
     for name in STEPS:
-        monkeypatch.setattr(module, name, module.CudaGraph(getattr(module, name)))
+        monkeypatch.setattr(module, name, CudaGraph(getattr(module, name)))
     agent, args = tiny_agent(module, device)
     rb = module.ReplayBuffer(1000, 6, 2, device)
     for _ in range(100):
@@ -129,13 +130,13 @@ def test_a_new_batch_size_is_captured_again_and_equals_eager(monkeypatch, run_st
     originals, parameters = {name: getattr(module, name) for name in STEPS}, {}
     for mode in ("eager", "graph"):
         for name, step in originals.items():
-            monkeypatch.setattr(module, name, module.CudaGraph(step) if mode == "graph" else step)
+            monkeypatch.setattr(module, name, CudaGraph(step) if mode == "graph" else step)
         agent, args = tiny_agent(module, device)
         loop = module.Loop()
         torch.manual_seed(1)
         for step in range(10):
             module.sac_update(agent, random_batch(module, step, device, 16 if step < 5 else 8), loop, args)
-        parameters[mode] = [p.clone() for p in module.CudaGraph.parameters(agent)]
+        parameters[mode] = [p.clone() for p in CudaGraph.parameters(agent)]
         if mode == "graph":
             assert module.critic_gradients.inputs[0].obs.shape == (8, 6)
             assert module.actor_gradients.inputs[0].obs.shape == (8, 6)
@@ -187,7 +188,7 @@ def float32_flags():
 
 def captured(module, monkeypatch) -> dict:
     """The three steps wrapped in `CudaGraph`, as `--cuda-graph` wraps them."""
-    steps = {name: module.CudaGraph(getattr(module, name)) for name in STEPS}
+    steps = {name: CudaGraph(getattr(module, name)) for name in STEPS}
     for name, step in steps.items():
         monkeypatch.setattr(module, name, step)
     return steps
@@ -231,16 +232,16 @@ if NEW_TF32:
 def test_the_signature_sees_each_change(change, float32_flags):
     module = importlib.import_module("pebble")
     agent, args = tiny_agent(module, torch.device("cpu"))
-    parameters = module.CudaGraph.parameters
-    signature = module.CudaGraph.signature((random_batch(module, 0, "cpu"), args.gamma), parameters(agent))
+    parameters = CudaGraph.parameters
+    signature = CudaGraph.signature((random_batch(module, 0, "cpu"), args.gamma), parameters(agent))
     module.critic_gradients(agent, random_batch(module, 1, "cpu"), args.gamma)  # new `.grad` tensors, new values
-    assert module.CudaGraph.signature((random_batch(module, 2, "cpu"), args.gamma), parameters(agent)) == signature
+    assert CudaGraph.signature((random_batch(module, 2, "cpu"), args.gamma), parameters(agent)) == signature
     data = random_batch(module, 3, "cpu")
     if change in INPUT_CHANGES:
         data = INPUT_CHANGES[change](data)
     else:
         STATE_CHANGES[change](agent)
-    assert module.CudaGraph.signature((data, args.gamma), parameters(agent)) != signature
+    assert CudaGraph.signature((data, args.gamma), parameters(agent)) != signature
 
 
 @pytest.mark.parametrize("script", PBRL + ORACLES)

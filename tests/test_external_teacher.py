@@ -20,6 +20,8 @@ from test_scripts import ROOT
 
 sys.path.insert(0, ROOT)
 import pebble  # noqa: E402
+from r2n_harness.external_teacher import ExternalTeacher, check_labels_unchanged  # noqa: E402
+from r2n_harness.preferences import read_preferences  # noqa: E402
 
 
 def status(run):
@@ -46,7 +48,7 @@ def test_a_stop_ends_the_nap_at_once(tmp_path):
     short nap of the stop signal, not at the end of the poll."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
     stops = []
-    teacher = pebble.ExternalTeacher(str(tmp_path), args, stops, poll_seconds=60.0)
+    teacher = ExternalTeacher(str(tmp_path), args, stops, pebble.Stopped, poll_seconds=60.0)
     threading.Timer(0.2, stops.append, [signal.SIGTERM]).start()
     started = time.monotonic()
     teacher.nap()
@@ -101,7 +103,7 @@ def test_sigterm_while_waiting_resumes_into_the_same_round_and_a_changed_labels_
     for key, value in queries_of(run, 1).items():
         np.testing.assert_array_equal(value, asked[key])
     assert_same_points(run, reference / "runs" / "ext")
-    data = pebble.read_preferences(str(run / "preferences"))
+    data = read_preferences(str(run / "preferences"))
     digests = [hashlib.sha256(content).hexdigest() for content in (first, second)]
     assert data["label_sha256"].tolist() == digests  # per round
     np.testing.assert_array_equal(data["labels"], np.array(json.loads(first) + json.loads(second), np.float32))
@@ -138,7 +140,7 @@ def test_teacher_json_says_the_step_while_training(tmp_path):
     """While the run trains, `teacher.json` says its current step: rewritten every 2 s of training at most (the
     page polls every 2 s), not at every step; waiting, it is the wait's."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=1500)
-    teacher = pebble.ExternalTeacher(str(tmp_path), args, stop_signals=[])
+    teacher = ExternalTeacher(str(tmp_path), args, [], pebble.Stopped)
     progress = pebble.Progress(total_steps=1500, budget=10, on_step=teacher.training)  # as the main loop wires it
     progress.update(0, "random", seconds=0.0, feedback=0)
     assert not (tmp_path / "teacher.json").exists()  # before the first round, the page reads the run's files
@@ -176,9 +178,9 @@ def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resum
     queries.label_sha256 = np.zeros(0, "<U64")  # as restored from an older state
     queries.add(**rows, round_index=1, step=1000, label_sha256="b" * 64)
     assert queries.label_sha256.tolist() == ["", "b" * 64] and len(queries.labels) == 6
-    pebble.check_labels_unchanged("nowhere", {"rounds": queries.rounds})  # an older state: nothing recorded
+    check_labels_unchanged("nowhere", {"rounds": queries.rounds})  # an older state: nothing recorded
     with pytest.raises(ValueError, match="nowhere/labels/1.json is not the labels file this run trained on"):
-        pebble.check_labels_unchanged("nowhere", {"label_sha256": queries.label_sha256})
+        check_labels_unchanged("nowhere", {"label_sha256": queries.label_sha256})
 
 
 def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_log(tmp_path):
@@ -203,7 +205,7 @@ def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_l
     assert (tmp_path / "preferences" / "0.npz").read_bytes() == first
     assert os.stat(tmp_path / "preferences" / "0.npz").st_mtime_ns == stamp
     assert sorted(os.listdir(folder)) == sorted(["seeded.npz"] + [f"{r}.npz" for r in range(11)])
-    data = pebble.read_preferences(folder)
+    data = read_preferences(folder)
     np.testing.assert_array_equal(data["obs"], queries.inputs[..., :2].astype(np.float32))
     np.testing.assert_array_equal(data["actions"], queries.inputs[..., 2:].astype(np.float32))
     for name in ("true_rewards", "physics", "labels", "rounds", "steps", "label_sha256"):
@@ -211,9 +213,9 @@ def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_l
     assert data["rounds"].tolist() == [-1] * 3 + [0] * 2 + list(range(1, 11))
     assert str(data["env_id"]) == "cartpole-swingup"
     # one file reads alone, as an earlier whole-log `.npz` does
-    np.testing.assert_array_equal(pebble.read_preferences(f"{folder}/0.npz")["labels"], queries.labels[3:5])
+    np.testing.assert_array_equal(read_preferences(f"{folder}/0.npz")["labels"], queries.labels[3:5])
     with pytest.raises(ValueError, match="no preferences files in"):
-        pebble.read_preferences(str(tmp_path))
+        read_preferences(str(tmp_path))
 
 
 def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(tmp_path, capsys):
@@ -223,7 +225,7 @@ def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(t
     import torch
 
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
-    teacher = pebble.ExternalTeacher(str(tmp_path), args, [], poll_seconds=0.02)
+    teacher = ExternalTeacher(str(tmp_path), args, [], pebble.Stopped, poll_seconds=0.02)
     folder = tmp_path / "labels" / "0.json"
     folder.mkdir(parents=True)
 
@@ -244,7 +246,99 @@ def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(t
     helper.join()
     assert keep.tolist() == [True, True] and labels.tolist() == [1.0, 0.0]
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("labels:")]
-    assert lines == [f"labels: {folder}: a folder, not a file: move it; waiting for a corrected file"]
+    assert lines == [f"labels: {folder}: a folder, not a file: move it; waiting for labels of "
+                     f"{tmp_path}/queries/0.npz"]
     (tmp_path / "labels" / "1.json").mkdir()
     with pytest.raises(ValueError, match=r"1.json is not the labels file this run trained on"):
-        pebble.check_labels_unchanged(str(tmp_path), {"label_sha256": ["", "0" * 64]})
+        check_labels_unchanged(str(tmp_path), {"label_sha256": ["", "0" * 64]})
+
+
+def asked(tmp_path, write, seconds=60):
+    """`ExternalTeacher.ask` for one round of 2 queries while `write(run)` plays the other side in a thread; the
+    round is stopped after `seconds` (the test fails then, it does not hang). Returns the labels read."""
+    import torch
+
+    args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
+    stops = []
+    teacher = ExternalTeacher(str(tmp_path), args, stops, pebble.Stopped, poll_seconds=0.02)
+    timer = threading.Timer(seconds, stops.append, [signal.SIGTERM])
+    timer.start()
+    helper = threading.Thread(target=write, args=(tmp_path,))
+    helper.start()
+    physics = np.arange(2 * 2 * 3 * 4, dtype=np.float64).reshape(2, 2, 3, 4)
+    try:
+        _, labels, _, _ = teacher.ask(0, "cartpole-swingup", 5, torch.zeros(2, 2, 3, 6), torch.zeros(2, 2, 3), physics,
+                                      step=0, asked=0, labelled=0)
+    finally:
+        timer.cancel()
+        helper.join()
+    return labels.tolist()
+
+
+def wait_until(condition, seconds=30):
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+
+
+def test_labels_for_other_queries_are_kept_aside_and_the_round_is_asked_again(tmp_path, capsys):
+    """A valid labels file whose digest names other queries than those the run wrote (the page drew a replaced
+    queries file) is not trained on: one line, the file moved aside whole, the page told, the round asked again."""
+    from r2n_harness.external_teacher import queries_digest
+
+    import label_app
+
+    def write(run):
+        wait_until(lambda: (run / "queries" / "0.npz").exists())
+        digest = label_app.read_queries(str(run), 0).digest  # the page's digest of what the run wrote
+        other = "0123456789abcdef"
+        (run / "labels").mkdir()
+        (run / "labels" / "0.json").write_text(json.dumps({"queries": other, "answers": [1, 1]}))
+        wait_until(lambda: (run / "teacher.json").exists() and "not this round's" in (status(run)["message"] or ""))
+        assert not (run / "labels" / "0.json").exists()
+        (run / "labels" / "0.json").write_text(json.dumps({"queries": digest, "answers": [0, 1]}))
+
+    assert asked(tmp_path, write) == [0.0, 1.0]
+    [aside] = [p for p in os.listdir(tmp_path / "labels") if p.startswith("0.json.mismatch-")]
+    assert json.loads((tmp_path / "labels" / aside).read_text()) == {"queries": "0123456789abcdef", "answers": [1, 1]}
+    digest = queries_digest("cartpole-swingup", np.arange(48, dtype=np.float64).reshape(2, 2, 3, 4))
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("labels:")]
+    assert lines == [f"labels: {tmp_path}/labels/0.json: answers the queries of digest 0123456789abcdef, not this "
+                     f"round's ({digest}); kept as {tmp_path}/labels/{aside}; waiting for labels of "
+                     f"{tmp_path}/queries/0.npz"]
+
+
+def test_a_queries_file_replaced_under_a_waiting_run_is_said_at_once_and_written_again(tmp_path, capsys):
+    import label_app
+
+    def write(run):
+        wait_until(lambda: (run / "queries" / "0.npz").exists())
+        wrote = label_app.read_queries(str(run), 0).digest
+        np.savez(run / "queries" / "tmp.npz", env_id="cartpole-swingup", physics=np.ones((3, 2, 3, 4)))
+        os.replace(run / "queries" / "tmp.npz", run / "queries" / "0.npz")  # another round's file, in its place
+        wait_until(lambda: label_app.read_queries(str(run), 0).digest == wrote)
+        (run / "labels").mkdir()
+        (run / "labels" / "0.json").write_text(json.dumps({"queries": wrote, "answers": [1, 0]}))
+
+    assert asked(tmp_path, write) == [1.0, 0.0]
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("queries:")]
+    assert len(lines) == 1 and lines[0].startswith(f"queries: {tmp_path}/queries/0.npz is no longer the file this run "
+                                                   "wrote for round 0 (digest "), lines
+
+
+def test_a_labels_file_is_read_by_its_content_not_its_time_stamp(tmp_path):
+    """Two writes within one time-stamp tick: `[0, 1` in place, then a valid file with the same mtime. The run
+    reads the second."""
+    def write(run):
+        wait_until(lambda: (run / "queries" / "0.npz").exists())
+        (run / "labels").mkdir()
+        path = run / "labels" / "0.json"
+        path.write_text("[0, 1")
+        stamp = os.stat(path).st_mtime_ns
+        wait_until(lambda: (run / "teacher.json").exists() and "not JSON" in (status(run)["message"] or ""))
+        with open(path, "w") as f:  # in place, as an editor may save
+            f.write("[1, 1]")
+        os.utime(path, ns=(stamp, stamp))
+
+    assert asked(tmp_path, write) == [1.0, 1.0]

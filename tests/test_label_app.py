@@ -89,6 +89,16 @@ def request(address, method, path, body=None, headers=None, reply_headers=False)
     return result if reply_headers else result[:2]
 
 
+def page_answers(run, round_index):
+    """The answers of a labels file that the page wrote: bound to the digest of the round's queries file."""
+    import label_app
+
+    written = json.loads((run / "labels" / f"{round_index}.json").read_text())
+    assert set(written) == {"queries", "answers"}, written
+    assert written["queries"] == label_app.read_queries(str(run), round_index).digest
+    return written["answers"]
+
+
 def get_state(address):
     status, body = request(address, "GET", "/api/state")
     assert status == 200
@@ -159,7 +169,8 @@ def test_label_app_takes_exactly_the_labels_the_run_takes():
     import label_app
 
     for content, n in VALID:
-        assert label_app.parse_answers(content, n) == json.loads(content), content
+        loaded = json.loads(content)
+        assert label_app.parse_answers(content, n) == (loaded["answers"] if isinstance(loaded, dict) else loaded), content
     for content, n in INVALID:
         with pytest.raises(ValueError):
             label_app.parse_answers(content, n)
@@ -190,7 +201,7 @@ def test_label_app_sets_aside_malformed_files_only(tmp_path, monkeypatch):
     # a valid file that replaced the malformed one between the check and the move is moved back: it is the answer
     (tmp_path / "0.json").write_text("[1, 0]")
     checks = iter([False])  # the check before the move saw the malformed file
-    monkeypatch.setattr(label_app, "is_valid", lambda p, n: next(checks, True))
+    monkeypatch.setattr(label_app, "is_valid", lambda p, n, queries_digest=None: next(checks, True))
     assert label_app.keeps_existing(path, 2)
     assert (tmp_path / "0.json").read_text() == "[1, 0]" and sorted(os.listdir(tmp_path)) == ["0.json", *kept]
 
@@ -412,7 +423,7 @@ def test_label_app_two_tabs_answering_a_round_in_a_headless_browser(tmp_path):
         answer_round(second, [])
         WebDriverWait(second, 30).until(lambda d: texts[1]("message") == (
             "round 0 was already answered, perhaps in another tab: your answers for it were not used"))
-        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]
+        assert page_answers(run, 0) == [0, 1]
         assert stored(first) == stored(second) == {}  # told, then dropped
         second.execute_cdp_cmd("Network.setBlockedURLs", {"urls": []})
         for driver, text in zip((first, second), texts):  # both move on
@@ -435,7 +446,7 @@ def test_label_app_malformed_labels_file_in_a_headless_browser(tmp_path):
                                         "as labels/0.json.rejected-...).")
         answer_round(driver, ["s", Keys.ARROW_LEFT])
         WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
-        assert json.loads((run / "labels" / "0.json").read_text()) == ["skip", 0]
+        assert page_answers(run, 0) == ["skip", 0]
         rejected = [name for name in os.listdir(run / "labels") if name != "0.json"]
         assert len(rejected) == 1 and rejected[0].startswith("0.json.rejected-")
         assert abs(int(rejected[0].split("-")[1]) - time.time()) < 60
@@ -488,7 +499,7 @@ def test_label_app_clips_before_answers_and_undo_in_a_headless_browser(tmp_path)
         assert not (run / "labels" / "0.json").exists()  # nothing is written before the round is submitted
         body.send_keys(Keys.ENTER)
         WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
-        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0]
+        assert page_answers(run, 0) == [0, 1, 0]
 
 
 @needs_chromium
@@ -569,7 +580,7 @@ def test_label_app_keeps_answers_through_a_reload_and_a_server_error_in_a_headle
         resource.prlimit(apps[0].pid, resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
         answer_round(driver, [])
         WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
-        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5]
+        assert page_answers(run, 0) == [0, 1, 0.5]
         assert stored(driver) == {}  # saved: the browser's copy is gone
         assert os.listdir(run / "labels") == ["0.json"]  # the failed write left nothing behind
         driver.refresh()
@@ -641,7 +652,7 @@ def test_label_app_one_answer_per_double_click_or_held_key_in_a_headless_browser
         assert text() == "round 0: query 3 of 4"
         answer_round(driver, ["=", "s"])
         WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
-        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 0, 0.5, "skip"]
+        assert page_answers(run, 0) == [1, 0, 0.5, "skip"]
 
 
 @contextlib.contextmanager
@@ -690,3 +701,36 @@ def test_label_app_another_origin_cannot_write_labels_in_a_headless_browser(tmp_
             assert driver.title == "fulfilled rejected"
         assert not (run / "labels").exists()
         assert get_state(address)["round"] == 0
+
+
+def test_label_app_binds_the_answers_to_the_queries_shown(tmp_path):
+    """A submit names the digest of the queries the page showed. Answers to queries the round's file no longer holds
+    (it was replaced after the page drew it) are refused with a sentence that says so, and nothing is written; the
+    right digest is recorded in the labels file. A labels file that answers other queries leaves its round pending."""
+    import label_app
+
+    run = make_run(tmp_path, (2,))
+    shown = label_app.read_queries(str(run), 0).digest
+    with serve(run) as address:
+        physics = np.ones((2, 2, 3, 4))  # the queries file is replaced: another round's, another run's
+        np.savez(run / "queries" / "0.npz", env_id="cartpole-swingup", obs=np.zeros((2, 2, 3, 5), np.float32),
+                 actions=np.zeros((2, 2, 3, 1), np.float32), physics=physics, true_rewards=np.zeros((2, 2, 3)))
+        now = label_app.read_queries(str(run), 0).digest
+        assert now != shown
+        body = json.dumps({"queries": shown, "answers": [0, 1]}).encode()
+        status, reply = request(address, "POST", "/api/labels/0", body)
+        assert status == 409 and f"it answers the queries of digest {shown}, not this round's ({now})" in reply.decode()
+        assert not (run / "labels" / "0.json").exists()
+        assert get_state(address)["queries_digest"] == now
+        status, _ = request(address, "POST", "/api/labels/0", json.dumps({"queries": now, "answers": [0, 1]}).encode())
+        assert status == 200 and page_answers(run, 0) == [0, 1]
+        # a labels file for other queries, written by someone else: the round is pending, and the state says why
+        os.replace(run / "labels" / "0.json", run / "labels" / "0.json.kept")
+        (run / "labels" / "0.json").write_text(json.dumps({"queries": shown, "answers": [1, 1]}))
+        state = get_state(address)
+        assert state["round"] == 0 and "not this round's" in state["malformed"]
+        # and the page's submit moves it aside, whole, before writing its own
+        status, _ = request(address, "POST", "/api/labels/0", json.dumps({"queries": now, "answers": [1, 0]}).encode())
+        assert status == 200 and page_answers(run, 0) == [1, 0]
+        [aside] = [name for name in os.listdir(run / "labels") if name.startswith("0.json.rejected-")]
+        assert json.loads((run / "labels" / aside).read_text()) == {"queries": shown, "answers": [1, 1]}

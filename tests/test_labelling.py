@@ -21,6 +21,8 @@ from test_scripts import ROOT, SPARSE_TINY, TINY, run_script, scalars
 sys.path.insert(0, ROOT)
 import ene  # noqa: E402
 import pebble  # noqa: E402
+from r2n_harness.external_teacher import labels_problem  # noqa: E402
+from r2n_harness.preferences import load_preferences, read_preferences  # noqa: E402
 
 # TINY with a budget of 10: two rounds of 5 queries (steps 500 and 1000), then SAC to 1500.
 EXTERNAL = TINY + ["--total-timesteps", "1500", "--max-feedback", "10", "--teacher", "external", "--run-name", "ext"]
@@ -40,6 +42,15 @@ def wait_for(condition, process, log, seconds=300):
         assert process.poll() is None, open(log).read()[-3000:]
         assert time.time() < deadline, open(log).read()[-3000:]
         time.sleep(0.05)
+
+
+def page_written(run, round_index):
+    """The answers of a labels file the page wrote, bound to the digest of the queries the run wrote."""
+    from r2n_harness.external_teacher import file_digest
+
+    written = json.loads((run / "labels" / f"{round_index}.json").read_text())
+    assert written["queries"] == file_digest(str(run / "queries" / f"{round_index}.npz")), written
+    return written["answers"]
 
 
 def oracle_answers(queries):
@@ -81,7 +92,7 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
     assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
     values = scalars(str(run))
     assert values["pbrl/total_feedback"] == [5, 10] and values["pbrl/labeled_feedback"] == [5, 9]
-    saved = pebble.read_preferences(str(run / "preferences"))
+    saved = read_preferences(str(run / "preferences"))
     expected = answers + round1[:4] + [np.nan]
     np.testing.assert_array_equal(saved["labels"], np.array(expected, np.float32))
     assert saved["rounds"].tolist() == [0] * 5 + [1] * 5 and saved["steps"].tolist() == [500] * 5 + [1000] * 5
@@ -96,9 +107,9 @@ def test_external_teacher_protocol_with_a_scripted_teacher(script, tmp_path):
 def test_the_run_takes_exactly_the_labels_the_page_takes():
     """The run's check of a labels file, on the table the page's check is tested on (tests/label_examples.py)."""
     for content, n in VALID:
-        assert pebble.labels_problem(content, n) is None, content
+        assert labels_problem(content, n) is None, content
     for content, n in INVALID:
-        assert pebble.labels_problem(content, n) is not None, content
+        assert labels_problem(content, n) is not None, content
 
 
 def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
@@ -107,7 +118,7 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     run_script("pebble.py", TINY + ["--run-name", "a"], first)
     folder = first / "runs" / "a" / "preferences"
     assert sorted(os.listdir(folder)) == ["0.npz", "1.npz", "2.npz", "3.npz"]  # a file per round, each written once
-    saved = pebble.read_preferences(str(folder))
+    saved = read_preferences(str(folder))
     assert saved["obs"].shape == (20, 2, 20, 51) and saved["rounds"].tolist() == [r for r in range(4) for _ in range(5)]
     values = scalars(str(first / "runs" / "a"))
     assert np.sum(~np.isnan(saved["labels"])) == values["pbrl/labeled_feedback"][-1]
@@ -127,11 +138,11 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     run_script("pebble.py", TINY + ["--run-name", "b", "--preferences", path, "--max-feedback", "30"], second)
     values = scalars(str(second / "runs" / "b"))
     assert values["pbrl/total_feedback"] == [25, 30]
-    data = pebble.read_preferences(str(second / "runs" / "b" / "preferences"))
+    data = read_preferences(str(second / "runs" / "b" / "preferences"))
     assert data["rounds"].tolist() == [-1] * 20 + [0] * 5 + [1] * 5
     np.testing.assert_array_equal(data["obs"][:20], saved["obs"])
     # one file of the folder seeds a run too: round 3's 5 queries
-    one = pebble.load_preferences(f"{path}/3.npz", "cartpole-swingup", 52, 20, budget=15)
+    one = load_preferences(f"{path}/3.npz", "cartpole-swingup", 52, 20, budget=15)
     np.testing.assert_array_equal(one["labels"], saved["labels"][15:])
     np.testing.assert_array_equal(one["obs"], saved["obs"][15:])
     for extra, message in [
@@ -216,7 +227,7 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         assert not (run / "labels" / "0.json").exists()  # the last answer can still be undone
         driver.find_element(By.ID, "submit").click()
         wait_for(lambda: (run / "labels" / "0.json").exists(), process, log)
-        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1, 0.5, "skip", 1]
+        assert page_written(run, 0) == [0, 1, 0.5, "skip", 1]
         # the run goes on: its next round appears on the page, answered by keyboard
         wait_for(lambda: (run / "queries" / "1.npz").exists(), process, log)
         WebDriverWait(driver, 60).until(lambda d: progress() == "round 1: query 1 of 5")
@@ -226,12 +237,12 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         WebDriverWait(driver, 30).until(lambda d: progress() == "round 1: all 5 answered")
         body.send_keys(Keys.ENTER)
         assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
-        assert json.loads((run / "labels" / "1.json").read_text()) == [0] * 5
+        assert page_written(run, 1) == [0] * 5
         assert scalars(str(run))["pbrl/labeled_feedback"] == [4, 9]
         # the labels on disk are the training data, and the run's record of them; the page says the run finished
         files = [(run / "labels" / f"{r}.json").read_bytes() for r in (0, 1)]
-        data = pebble.read_preferences(str(run / "preferences"))
-        expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)]
+        data = read_preferences(str(run / "preferences"))
+        expected = [np.nan if a == "skip" else a for content in files for a in json.loads(content)["answers"]]
         np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
         assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files]  # per round
         WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
@@ -245,3 +256,19 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         app.terminate()  # not SIGINT: a background job (a CI runner) ignores it, and so would the app
         app.wait(timeout=30)
         process.kill()
+
+
+def test_a_round_of_equal_answers_is_trained_on_and_the_run_goes_on(tmp_path):
+    """Every answer "equal" (0.5), as a person may answer: no label is strict, so the round has no training accuracy
+    (0 / 0), and the run trains on the labels and goes on instead of stopping at a non-finite value."""
+    process, log = start("pebble.py", tmp_path, EXTERNAL)
+    run = tmp_path / "runs" / "ext"
+    for round_index in range(2):  # the budget of 10 in rounds of 5
+        wait_for(lambda: (run / "queries" / f"{round_index}.npz").exists(), process, log)
+        (run / "labels").mkdir(exist_ok=True)
+        (run / "labels" / f"{round_index}.json").write_text(json.dumps([0.5] * 5))
+    assert process.wait(timeout=300) == 0, open(log).read()[-3000:]
+    values = scalars(str(run))
+    assert values["pbrl/labeled_feedback"] == [5, 10] and len(values["pbrl/reward_loss"]) == 2
+    assert all(np.isfinite(values["pbrl/reward_loss"])) and "pbrl/reward_accuracy" not in values
+    np.testing.assert_array_equal(read_preferences(str(run / "preferences"))["labels"], np.full(10, 0.5))

@@ -142,3 +142,26 @@ def test_the_main_block_stays_short():
     text = lines("pebble.py")
     main = next(i for i, line in enumerate(text) if line.startswith("if __name__"))
     assert len(text[main:]) - (text[-1] == "") <= 200
+
+
+HARNESS_MODULES = {  # the run harness's package: what each module defines, and no script does
+    "cuda_graph": ["CudaGraph"],
+    "external_teacher": ["ExternalTeacher", "check_labels_unchanged", "labels_problem", "queries_digest"],
+    "preferences": ["read_preferences", "load_preferences", "add_preferences"],
+}
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_the_harness_lives_in_its_package_and_no_script_defines_it(script):
+    """What only a flag needs is defined once, in `r2n_harness`, and reached through `harness(module)` in that flag's
+    branch: no script defines it, and no script imports the package at its top."""
+    import importlib
+
+    tree = ast.parse(open(os.path.join(ROOT, script)).read())
+    defined = {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
+    for module, names in HARNESS_MODULES.items():
+        package = importlib.import_module(f"r2n_harness.{module}")
+        assert all(hasattr(package, name) for name in names), module
+        assert not defined & set(names), f"{script} defines {defined & set(names)}, which r2n_harness.{module} holds"
+    top_imports = [node for node in tree.body if isinstance(node, (ast.Import, ast.ImportFrom))]
+    assert not [n for n in top_imports if "r2n_harness" in ast.dump(n)], f"{script} imports r2n_harness at its top"

@@ -19,7 +19,8 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from test_scripts import COMMON_TAGS, ROOT, TINY, check_features, run_script, scalars  # noqa: E402
+from test_scripts import (COMMON_TAGS, ROOT, TINY, check_features, check_harness_flag_stops_a_copy, run_script,  # noqa: E402
+                          scalars)
 
 import anf_sac  # noqa: E402
 import ene  # noqa: E402
@@ -60,7 +61,7 @@ def pipeline(tmp_path_factory):
     out = {}
     with ThreadPoolExecutor(len(ORACLE_ARGS)) as pool:
         futures = {
-            script: pool.submit(run_script, script, args + ["--exp-name", script[:-3]], root, False)
+            script: pool.submit(run_script, script, args + ["--exp-name", script[:-3]], root, False, True)
             for script, args in ORACLE_ARGS.items()
         }
         for script, future in futures.items():
@@ -401,3 +402,9 @@ def test_anf_sac_is_sac_plus_the_agent_half_of_the_r2n_patch():
     # the reward half of the patch is not there
     for reward_part in ("reward_sparsity", "sparse_reward", "reward_optimizer", "sparse_agent"):
         assert reward_part not in anf_source
+
+
+@pytest.mark.parametrize("script", list(ORACLE_ARGS))
+def test_a_copied_oracle_stops_at_a_harness_flag_with_one_line(script, tmp_path):
+    """`--cuda-graph` needs the run harness's package: a copy of the script without it says so in one line."""
+    check_harness_flag_stops_a_copy(script, ORACLE_ARGS[script] + ["--cuda-graph"], "--cuda-graph", tmp_path)

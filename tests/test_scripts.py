@@ -4,6 +4,7 @@ import importlib.util
 import math
 import os
 import re
+import shutil
 import subprocess
 import sys
 
@@ -62,12 +63,29 @@ def check_features(values, nets):
         assert values[f"features/{net}/chance"] == pytest.approx([chance] * len(values["eval/episodic_return"]))
 
 
-def run_script(script, args, cwd, check=True):
+# A copied script: the script and ene.py alone in a folder, run where this project cannot be imported (its editable
+# install's finder removed, nothing of it on the path), as in a user's own work with the design card's packages.
+COPIED = """import importlib.util, os, runpy, sys
+sys.meta_path[:] = [finder for finder in sys.meta_path if "__editable__" not in repr(finder)]
+sys.argv, sys.path[0] = sys.argv[1:], os.path.dirname(sys.argv[1])
+assert importlib.util.find_spec("r2n_harness") is None and importlib.util.find_spec("analyze") is None
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def run_script(script, args, cwd, check=True, copied=False):
+    """Run `script` in `cwd`; `copied`: a copy of it with ene.py, without this project (`COPIED`), unless its flags
+    ask for the run harness (R2N_TEST_CUDA=graph's `--cuda-graph`)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONWARNINGS="ignore")
-    return subprocess.run(
-        [sys.executable, os.path.join(ROOT, script), *args], cwd=cwd, env=env, capture_output=True, text=True,
-        check=check, timeout=600,
-    )
+    command = [sys.executable, os.path.join(ROOT, script), *args]
+    if copied and DEVICE != "--cuda-graph":
+        folder = os.path.join(cwd, "copied")
+        os.makedirs(folder, exist_ok=True)
+        for name in (script, "ene.py"):
+            shutil.copy(os.path.join(ROOT, name), folder)
+        env.pop("PYTHONPATH", None)
+        command = [sys.executable, "-c", COPIED, os.path.join(folder, script), *args]
+    return subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True, check=check, timeout=600)
 
 
 def scalars(run_dir):
@@ -82,7 +100,8 @@ def tiny_args(script):
 
 @pytest.mark.parametrize("script", PBRL_SCRIPTS)
 def test_smoke_reaches_every_phase(script, tmp_path):
-    result = run_script(script, tiny_args(script) + ["--exp-name", "smoke"], tmp_path)
+    """A copy of the script, with ene.py alone and without this project, runs its method through every phase."""
+    result = run_script(script, tiny_args(script) + ["--exp-name", "smoke"], tmp_path, copied=True)
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 
@@ -194,54 +213,23 @@ def test_help_documents_every_flag(script, tmp_path):
             assert flag in result.stdout
 
 
-ALL_SCRIPTS = ["sac.py", "anf_sac.py", "pebble.py", "r2n_pebble.py", "set_pebble.py", "static_pebble.py", "l1_pebble.py",
-               "dropconnect_pebble.py", "surf.py", "r2n_surf.py", "rune.py", "r2n_rune.py"]
+PBRL_ALL = ["pebble.py", "r2n_pebble.py", "set_pebble.py", "static_pebble.py", "l1_pebble.py", "dropconnect_pebble.py",
+            "surf.py", "r2n_surf.py", "rune.py", "r2n_rune.py"]
 
 
-def test_every_script_stores_its_noise_unless_told_to_redraw_it():
-    """The ENE's default is an environment's: a stored observation keeps its noise. `--noise-resample` gives ANF's
-    code's variant, in every one of the 12 scripts (the numerics tests pin what each variant computes)."""
-    import tyro
-
-    sys.path.insert(0, ROOT)
-    for script in ALL_SCRIPTS:
-        module = importlib.import_module(script[:-3])
-        assert tyro.cli(module.Args, args=[]).noise_resample is False, script
-        assert tyro.cli(module.Args, args=["--noise-resample"]).noise_resample is True, script
-
-
-@pytest.mark.skipif(importlib.util.find_spec("wandb") is not None, reason="wandb is installed")
-def test_track_without_wandb_says_how_to_install(tmp_path):
-    result = run_script("pebble.py", TINY + ["--track"], tmp_path, check=False)
-    assert result.returncode != 0
+def check_harness_flag_stops_a_copy(script, args, flag, cwd):
+    """Copied without this project, `script` given a flag that needs the run harness's package stops before training
+    with one line that names the flag and the package; nothing is written."""
+    if DEVICE == "--cuda-graph":
+        pytest.skip("R2N_TEST_CUDA=graph: every run asks for the harness's --cuda-graph")
+    result = run_script(script, args, cwd, check=False, copied=True)
     lines = [line for line in result.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "--track needs wandb" in lines[0], result.stderr
-    assert not os.path.exists(tmp_path / "runs")
+    assert result.returncode != 0 and len(lines) == 1, result.stderr
+    assert f"{flag} needs the package r2n_harness" in lines[0], lines
+    assert not os.path.exists(os.path.join(cwd, "runs"))
 
 
-@pytest.mark.parametrize("script", PBRL_SCRIPTS)
-def test_runs_started_in_the_same_second_get_their_own_folders(script, tmp_path, monkeypatch):
-    """A sweep starts runs that differ only in noise or budget, which the folder name does not show."""
-    sys.path.insert(0, ROOT)
-    module = __import__(script[:-3])
-    monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(module.time, "time", lambda: 1_700_000_000.5)
-    names = [module.make_run_folder("cheetah-run", "pebble", 1) for _ in range(3)]
-    assert names == [f"cheetah-run__pebble__1__{1_700_000_000 + i}" for i in range(3)]
-    assert sorted(os.listdir(tmp_path / "runs")) == names
-
-
-def test_diagnostics_leave_training_unchanged(tmp_path):
-    """The diagnostics draw from a random stream of their own: drawing far fewer of them changes nothing else."""
-    args = TINY + ["--total-timesteps", "1500", "--eval-freq", "750"]
-    runs = {}
-    for name, sizes in (("many", []), ("few", ["--diagnostic-pairs", "3", "--diagnostic-transitions", "5"])):
-        run_script("pebble.py", args + sizes + ["--exp-name", name], tmp_path)
-        (run_dir,) = glob.glob(str(tmp_path / "runs" / f"*{name}*"))
-        runs[name] = (scalars(run_dir), torch.load(os.path.join(run_dir, f"{name}.cleanrl_model"), weights_only=False))
-    (many, many_checkpoint), (few, few_checkpoint) = runs["many"], runs["few"]
-    assert many["eval/episodic_return"] == few["eval/episodic_return"]
-    assert many["pbrl/reward_loss"] == few["pbrl/reward_loss"]
-    for name, weight in many_checkpoint["actor"].items():
-        assert torch.equal(weight, few_checkpoint["actor"][name]), name
-    assert many["pbrl/heldout_accuracy"] != few["pbrl/heldout_accuracy"]  # the diagnostics themselves did differ
+@pytest.mark.parametrize("script", PBRL_ALL)
+def test_a_copied_script_stops_at_a_harness_flag_with_one_line(script, tmp_path):
+    check_harness_flag_stops_a_copy(script, TINY + ["--teacher", "external"], "--teacher external", tmp_path)
+    check_harness_flag_stops_a_copy(script, TINY + ["--preferences", "prefs"], "--preferences", tmp_path)

@@ -28,7 +28,7 @@ SCRIPT_TAGS = {
 def test_smoke_reaches_every_phase(script, tmp_path):
     sparse = script.startswith("r2n_")
     args = TINY + SHORT + (SPARSE_TINY if sparse else []) + (["--surf-tau", "0.6"] if "surf" in script else [])
-    result = run_script(script, args + ["--exp-name", "smoke"], tmp_path)
+    result = run_script(script, args + ["--exp-name", "smoke"], tmp_path, copied=True)  # a copy, alone
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 

@@ -2139,15 +2139,17 @@ def test_which_sparsity_preset_is_the_protocols_runs_in_its_order():
     runs = benchmark.expand(benchmark.Args(preset="which-sparsity"))
     assert len(runs) == 54
     stages = [{r.method for r in runs[:22]}, {r.method for r in runs[22:38]}, {r.method for r in runs[38:]}]
-    assert stages == [{"r2n_pebble_agent_only_stored_noise", "r2n_pebble_reward_only_stored_noise", "r2n_pebble_stored_noise"},
-                      {"l1_pebble_stored_noise", "dropconnect_pebble_stored_noise"},
-                      {"set_pebble_stored_noise", "static_pebble_stored_noise"}]
+    assert stages == [
+        {"r2n_pebble_agent_only_stored_noise", "r2n_pebble_reward_only_stored_noise", "r2n_pebble_stored_noise"},
+        {"l1_pebble_stored_noise", "dropconnect_pebble_stored_noise"},
+        {"set_pebble_stored_noise", "static_pebble_stored_noise"}]
     assert sorted(r.seed for r in runs if r.method == "r2n_pebble_stored_noise") == [9, 10]
     assert [r.seed for r in runs[:22]] == sorted(r.seed for r in runs[:22])  # seed-major within a stage
-    (reference,) = [r for r in benchmark.expand(benchmark.Args(preset="stored-noise")) if r.run_id.endswith("budget1000__seed8")
-                    and r.method == "r2n_pebble_stored_noise"]
+    (reference,) = [r for r in benchmark.expand(benchmark.Args(preset="stored-noise"))
+                    if r.run_id == "r2n_pebble_stored_noise__cheetah-run__noise0.9__budget1000__seed8"]
     (new,) = [r for r in runs if r.run_id == reference.run_id.replace("seed8", "seed9")]
-    assert [w for w in new.command if "seed" not in w and w != "9"] == [w for w in reference.command if "seed" not in w and w != "8"]
+    same = lambda command, seed: [w for w in command if "seed" not in w and w != seed]  # noqa: E731
+    assert same(new.command, "9") == same(reference.command, "8")
     for run in runs:
         assert "--no-noise-resample" in run.command and run.command[run.command.index("--total-timesteps") + 1] == "250000"
     flags = {r.method: r.command for r in runs}
@@ -2190,10 +2192,11 @@ def test_which_sparsity_power_is_what_the_protocol_quotes():
     effect = lambda arm: (1 - module.ARMS[arm][0] / module.PAPER_R2N) * r2n.mean()
     planned = {arm: spec[3] for arm, spec in module.ARMS.items()}
     holm = module.holm_power(r2n.mean(), sd, 10, planned)
-    for arm, row in (("r2n_pebble_reward_only_stored_noise", "H1 reward-only"), ("dropconnect_pebble_stored_noise", "H2 DropConnect"),
-                     ("l1_pebble_stored_noise", "H3 L1")):
+    for arm, row in (("r2n_pebble_reward_only_stored_noise", "H1 reward-only"),
+                     ("dropconnect_pebble_stored_noise", "H2 DropConnect"), ("l1_pebble_stored_noise", "H3 L1")):
         bound = module.power(effect(arm), sd, planned[arm], 10, 0.05 / 3)
         assert f"| {row} | -{effect(arm):.1f} | {planned[arm]} vs 10 | {bound:.2f}, {holm[arm]:.2f} |" in protocol, row
-    assert holm["r2n_pebble_reward_only_stored_noise"] >= module.power(effect("r2n_pebble_reward_only_stored_noise"), sd, 10, 10, 0.05 / 3)
-    agent = module.power(effect("r2n_pebble_agent_only_stored_noise"), sd, 10, 10)
-    assert f"| E1 agent-only (alpha 0.05) | -{effect('r2n_pebble_agent_only_stored_noise'):.1f} | 10 vs 10 | {agent:.2f} |" in protocol
+    reward_only, agent_only = effect("r2n_pebble_reward_only_stored_noise"), effect("r2n_pebble_agent_only_stored_noise")
+    assert holm["r2n_pebble_reward_only_stored_noise"] >= module.power(reward_only, sd, 10, 10, 0.05 / 3)
+    agent = module.power(agent_only, sd, 10, 10)
+    assert f"| E1 agent-only (alpha 0.05) | -{agent_only:.1f} | 10 vs 10 | {agent:.2f} |" in protocol
