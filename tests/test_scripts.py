@@ -68,6 +68,7 @@ def check_features(values, nets):
 COPIED = """import importlib.util, os, runpy, sys
 sys.meta_path[:] = [finder for finder in sys.meta_path if "__editable__" not in repr(finder)]
 sys.argv, sys.path[0] = sys.argv[1:], os.path.dirname(sys.argv[1])
+sys.path[:] = [path for path in sys.path if not os.path.isdir(os.path.join(path or ".", "r2n_harness"))]
 assert importlib.util.find_spec("r2n_harness") is None and importlib.util.find_spec("analyze") is None
 runpy.run_path(sys.argv[0], run_name="__main__")
 """
