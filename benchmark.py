@@ -4,8 +4,10 @@
 Presets (`--preset`) are the paper's experiments and this project's studies (docs/benchmark.md); `--methods`,
 `--env-ids`, `--noises`, `--budgets` and `--seeds` replace a preset's values or, without a preset, define the grid.
 Each run has a deterministic id `{method}__{env_id}__noise{noise}__budget{budget}__seed{seed}` and runs
-`python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...` plus
-`--extra`, so `analyze.py` groups its TensorBoard run by the method name.
+`python {script} --exp-name {method} --env-id ... --noise ... --max-feedback ... --seed ... --threads ...
+--resumable --diagnostics --query-log` plus `--extra`, so `analyze.py` groups its TensorBoard run by the method name.
+The run harness's three flags (docs/running.md) make every run resumable, log its diagnostics and its queries; none
+changes a number.
 
 Choices where the issue is silent:
 - Order: seed-major (all configurations of seed 1, then seed 2, ...), so an interrupted sweep has whole seeds.
@@ -368,6 +370,10 @@ def script_of(method: str, script_dir: str) -> tuple:
     return path, flags
 
 
+# every run: resumable (preemption, time limits), with its diagnostics; a PbRL run also keeps its query log
+HARNESS = ("--resumable", "--diagnostics")
+
+
 def expand(args: Args) -> list:
     """The runs of the grid (the union of the preset's parts), seed-major, deduplicated by run id."""
     extra = tuple(shlex.split(args.extra))
@@ -384,7 +390,8 @@ def expand(args: Args) -> list:
                     command = (args.python, script, "--exp-name", method, "--env-id", env, "--noise", f"{noise:g}")
                     if budget_m is not None:
                         command += ("--max-feedback", str(budget_m))
-                    command += ("--seed", str(seed), "--threads", str(args.threads), "--run-name", run_id) + tuple(flags)
+                    command += ("--seed", str(seed), "--threads", str(args.threads), "--run-name", run_id) + HARNESS
+                    command += (() if budget_m is None else ("--query-log",)) + tuple(flags)
                     if part is not None:
                         command += part.flags + (() if budget_m is None else part.feedback_flags)
                     runs.setdefault(run_id, (0 if part is None else part.stage,

@@ -306,22 +306,28 @@ def serve_env(pipe, args: tuple):
             return
 
 
-def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int = 320) -> np.ndarray:
+def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int = 320, physics=None) -> np.ndarray:
     """Frames (T, height, width, 3) uint8 of the physics `states` (T, D) of task `env_id`: from camera 0 (dm_control)
     or the model's tracking camera, as in videos (gymnasium). Needs a renderer: on a machine without a display set
-    `MUJOCO_GL=egl` (or `osmesa`) before the first import of dm_control or mujoco."""
+    `MUJOCO_GL=egl` (or `osmesa`) before the first import of dm_control or mujoco. `physics`: a dm_control task's
+    physics to draw with, kept by a caller that draws many clips (its renderer is made once); else one is made."""
     if env_id not in dmc_tasks():
         return render_gym_states(env_id, states, height, width)
-    from dm_control import suite
-
-    domain, task = env_id.split("-", 1)
-    physics = suite.load(domain, task).physics
+    physics = physics or dmc_physics(env_id)
     frames = []
     for state in states:
         with physics.reset_context():  # sets the state and recomputes positions for drawing
             physics.set_state(state)
         frames.append(physics.render(height, width, camera_id=0))
     return np.stack(frames)
+
+
+def dmc_physics(env_id: str):
+    """A dm_control task's physics, for `render_states`."""
+    from dm_control import suite
+
+    domain, task = env_id.split("-", 1)
+    return suite.load(domain, task).physics
 
 
 def render_gym_states(env_id: str, states: np.ndarray, height: int, width: int) -> np.ndarray:

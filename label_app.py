@@ -70,6 +70,7 @@ import sys
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -445,26 +446,35 @@ class Clips:
     def __init__(self, run_dir: str, fps: int, max_bytes: int):
         self.run_dir, self.fps, self.max_bytes, self.lock = run_dir, fps, max_bytes, threading.Lock()
         self.kept, self.kept_bytes = OrderedDict(), 0  # (digest, query, side) -> GIF, least recently shown first
+        # One thread draws every clip, with one physics per task: one MuJoCo context, made once, and one malloc
+        # arena. Each request's own thread would leave its arena holding its clip's peak (docs/labelling.md).
+        self.drawer, self.physics = ThreadPoolExecutor(1, thread_name_prefix="clips"), {}
 
     def gif(self, round_index: int, query: int, side: int, digest: Optional[str] = None) -> bytes:
         """The clip of a query's segment (side 0: the first); with `digest`, only of the queries of that digest."""
-        import imageio.v3 as iio
-
         with self.lock:  # one MuJoCo renderer at a time
             key = self.key(round_index, read_queries(self.run_dir, round_index), query, side, digest)
             if key not in self.kept:
                 queries, physics = load_queries(self.run_dir, round_index)
                 key = self.key(round_index, queries, query, side, digest)  # the file may have changed meanwhile
-                frames = ene.render_states(queries.env_id, physics[query, side])
-                buffer = io.BytesIO()
-                iio.imwrite(buffer, frames, extension=".gif", duration=1000 / self.fps, loop=0)
-                self.kept[key] = buffer.getvalue()
+                self.kept[key] = self.drawer.submit(self.draw, queries.env_id, physics[query, side]).result()
                 self.kept_bytes += len(self.kept[key])
             self.kept.move_to_end(key)
             clip = self.kept[key]
             while self.kept_bytes > self.max_bytes:  # a clip larger than the bound is served, not kept
                 self.kept_bytes -= len(self.kept.popitem(last=False)[1])
             return clip
+
+    def draw(self, env_id: str, states: np.ndarray) -> bytes:
+        """The GIF of one segment's physics `states` (in the drawing thread)."""
+        import imageio.v3 as iio
+
+        if env_id in ene.dmc_tasks() and env_id not in self.physics:
+            self.physics[env_id] = ene.dmc_physics(env_id)
+        frames = ene.render_states(env_id, states, physics=self.physics.get(env_id))
+        buffer = io.BytesIO()
+        iio.imwrite(buffer, frames, extension=".gif", duration=1000 / self.fps, loop=0)
+        return buffer.getvalue()
 
     @staticmethod
     def key(round_index: int, queries: Queries, query: int, side: int, digest: Optional[str]) -> tuple:
@@ -603,21 +613,28 @@ function hide() {  // no round on the page
   $("question").hidden = $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
   tell("mine");
 }
-function show() {  // the current query (one per answer so far), or the submit step after the last
+const RETRY_S = [0.5, 1, 2, 4, 8];  // a failed clip load is tried again after these waits, then every 8 s
+function show(attempt = 0) {  // the current query (one per answer so far), or the submit step after the last
   const i = answers.length, token = ++shown;
   ready = false; enable(false);
   $("clips").hidden = true; $("question").hidden = $("answers").hidden = i === n; $("undo").hidden = i === 0;
   $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
   if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
   $("progress").textContent = `round ${round}: query ${i + 1} of ${n}`;
-  $("left").src = clip(round, i, 0); $("right").src = clip(round, i, 1);
+  const again = attempt ? `&try=${attempt}` : "";  // a new address: nothing of the failed load is reused
+  $("left").src = clip(round, i, 0) + again; $("right").src = clip(round, i, 1) + again;
   Promise.all([$("left").decode(), $("right").decode()]).then(() => {
     if (token !== shown) return;
+    if (attempt) $("message").textContent = `the clips of query ${i + 1} loaded on try ${attempt + 1}`;
     $("clips").hidden = false;
     if (i + 1 < n) ahead = [0, 1].map((side) => Object.assign(new Image(), {src: clip(round, i + 1, side)}));
     setTimeout(() => { if (token === shown) { ready = true; enable(true); } }, SHOWN_MS);
-  }, () => {
-    if (token === shown) $("message").textContent = `the clips of query ${i + 1} did not load: the app's output says why`;
+  }, () => {  // the app stopped or is restarting, or it could not draw them (its output says why): try again
+    if (token !== shown) return;
+    const wait = RETRY_S[Math.min(attempt, RETRY_S.length - 1)];
+    $("message").textContent = `the clips of query ${i + 1} did not load (try ${attempt + 1}): the app does not ` +
+      `answer, or its output says why; trying again in ${wait} s`;
+    setTimeout(() => { if (token === shown) show(attempt + 1); }, 1000 * wait);
   });
 }
 function answer(choice) {
@@ -714,18 +731,22 @@ $("undo").onclick = undo; $("submit").onclick = submit;
 document.addEventListener("click", (e) => { if (e.detail > 0) e.target.closest("button")?.blur(); });
 const KEYS = {ArrowLeft: () => answer("left"), ArrowRight: () => answer("right"), "=": () => answer("equal"),
               " ": () => answer("equal"), s: () => answer("skip"), Backspace: undo, Enter: submit};
+const modified = (e) => e.ctrlKey || e.altKey || e.metaKey || e.shiftKey;
+const pressing = (e) => e.target.closest?.("button") && (e.key === "Enter" || e.key === " ");
 document.addEventListener("keydown", (e) => {
   const typed = e.key.length === 1 && e.key !== " ";  // a character, which a keyboard may type with Shift ("=")
-  if (e.ctrlKey || e.altKey || e.metaKey || e.shiftKey && !typed) return;  // the browser's: zoom, save, back...
-  if (e.target.closest?.("button") && (e.key === "Enter" || e.key === " ")) {  // presses the focused button
-    if (e.repeat) e.preventDefault();  // once: a held key does not press it again
+  if (pressing(e)) {  // presses the focused button: unmodified, once (a held key does not press it again)
+    if (e.repeat || modified(e)) e.preventDefault();
     return;
   }
+  if (e.ctrlKey || e.altKey || e.metaKey || e.shiftKey && !typed) return;  // the browser's: zoom, save, back...
   const action = KEYS[typed ? e.key.toLowerCase() : e.key];  // "S" (Caps Lock) is "s"
   if (!action) return;
   e.preventDefault();
   if (!e.repeat) action();  // a key held down acts once
 });
+// Space presses a button when it comes up: a modifier held then, or at its keydown, presses nothing
+document.addEventListener("keyup", (e) => { if (pressing(e) && modified(e)) e.preventDefault(); });
 refresh();
 </script></body></html>
 """

@@ -2,61 +2,25 @@
 """R2N on the PbRL method below (docs/r2n_pebble.md, r2n_surf.md, r2n_rune.md): sparse input layers.
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
-
-RUNE on PEBBLE (docs/rune.md), an exploration bonus from reward uncertainty: PEBBLE (Lee, Smith &
-Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement Learning via Relabeling Experience
-and Unsupervised Pre-training", ICML 2021) with the R2N paper's appendix defaults, plus RUNE's
-exploration bonus (last paragraphs). The loop, one iteration per env step:
-
-1. `global_step < learning_starts`: uniform random actions, no learning.
-2. then for `unsup_steps`: SAC on PEBBLE's state-entropy reward (k-NN distance / running std).
-   As in the paper's PEBBLE, it is computed on the full observation, noise included.
-3. at `learning_starts + unsup_steps`: the first feedback round (uniform sampling), a relabel,
-   a critic reset, then `reset_updates` SAC updates.
-4. every `feedback_freq` steps while budget is left: a feedback round. It samples queries, asks the
-   simulated teacher, trains the reward ensemble on all labels so far, relabels the *whole* replay
-   buffer. One SAC update per step on the learned reward plus RUNE's bonus.
-Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
-
-RUNE (Liang, Shu, Lee & Abbeel, "Reward Uncertainty for Exploration in Preference-based
-Reinforcement Learning", ICLR 2022) adds an exploration bonus; `diff pebble.py rune.py` is RUNE.
-Beside the ensemble mean r(s, a), the replay buffer stores the population std sigma(s, a) of the
-members' predictions, computed per new transition and at every relabel. The critic target uses r +
-beta_t * sigma with beta_t = beta_0 * (1 - rho)^t, t the global env step (`--rune-beta-init` 0.05,
-`--rune-beta-decay` 1e-5: the paper's table). The paper calls the schedule "linear decay"; this is
-the geometric decay that RUNE's code computes under that name (a deviation from the paper's word).
-
-Choices where the paper is silent. A stored observation keeps its noise, as in B-Pref's buffers;
-`--noise-resample` redraws its noise columns at every read (replay minibatches, reward training,
-relabelling, query scoring, k-NN), as ANF's code does. The teacher is B-Pref's, thresholds as
-written (the reference squares them after round one). Each asked query counts against the budget;
-labels obtained are logged apart. Early stopping's accuracy counts only strict (non-equal) labels. A
-new transition's stored reward is the current ensemble's; the next relabel overwrites it. RUNE, as
-in its reference code: the bonus enters only the critic target (the actor sees it through Q),
-post-reset updates included, never pre-training (state-entropy reward) nor evaluation. Sigma is not
-normalised. beta_t decays from step 0, not from the first feedback round.
-
-Only `ene.py`, the noisy environment, is shared with the other scripts.
-`--help` documents every flag.
-
-R2N, the patch `diff pebble.py r2n_pebble.py` (it also turns surf.py and rune.py into r2n_surf.py
-and r2n_rune.py): the input layers of the reward members, the actor and the critics keep 20% of
-their weights (random masks; the reset critic gets a fresh one). Masked weights, their gradients and
-Adam moments stay 0; target critics: dense Polyak copies. `--no-sparse-reward`, `--no-sparse-agent`:
-dense layers, but their masks are still drawn, so a seed does not give the base script's run.
-Topology updates: reward models 0.2 per 100 reward steps (whole run), agent 0.05 per 1000 SAC steps:
-drop the smallest active weights; grow as many, at 0, where the dense gradient is largest (RigL).
+R2N, the patch `diff pebble.py r2n_pebble.py` (it also makes r2n_surf.py and r2n_rune.py): the
+input layers of the reward members, the actor and the critics keep 20% of their weights, rewired
+during training (RigL: drop the smallest active weights, grow where the gradient is largest).
+PEBBLE (docs/pebble.md): Lee, Smith & Abbeel, "PEBBLE: Feedback-Efficient Interactive Reinforcement
+Learning via Relabeling Experience and Unsupervised Pre-training", ICML 2021, with the R2N paper's
+defaults: SAC pre-trained on a state-entropy reward, then a feedback round every `feedback_freq`
+steps (labels, the reward ensemble trained on all of them, the replay buffer relabelled).
+RUNE (docs/rune.md): Liang et al., "Reward Uncertainty for Exploration in Preference-based RL",
+ICLR 2022: `diff pebble.py rune.py` is RUNE, an exploration bonus from the members' spread.
+Choices where the paper is silent, and each step in detail: the docs page.
 """
-import dataclasses
 import importlib
 import importlib.util
 import math
 import os
 import random
-import signal
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple, Optional
 
 import numpy as np
@@ -83,8 +47,7 @@ class Args:
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
     noise_resample: bool = False
-    """redraw the noise columns of stored observations each time they are read (ANF's code);
-    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
+    """redraw stored observations' noise at each read (ANF's code); off: as stored (B-Pref's)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000
@@ -211,11 +174,9 @@ class Args:
     """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
     Faster; numerics differ from FP32."""
     cuda_graph: bool = False
-    """replay the SAC steps' gradients as CUDA graphs (GPU only).
-    Faster; the same numbers as eager on that GPU."""
+    """replay the SAC steps' gradients as CUDA graphs (GPU only): faster, eager's numbers"""
     parallel_eval: bool = False
-    """step the evaluation envs at once, each in its own process.
-    Faster where cores are free; the same returns."""
+    """step the evaluation envs at once, each in its own process: the same returns"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -223,115 +184,32 @@ class Args:
     wandb_entity: Optional[str] = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`).
-    Needs the `video` extra."""
+    """capture videos of the first evaluation env in `videos/{run_name}` (the `video` extra)"""
     save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model`.
-    It is written at every evaluation."""
+    """save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` at every evaluation"""
     threads: Optional[int] = None
     """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps, a host sync; the loop's others are each step's
-    action for the env and the reads of a feedback round and of a topology update"""
+    """log the SAC losses every this many steps (a host sync: docs/running.md)"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
-    A folder holding a `state.pt` is resumed."""
+    With `--resumable`, a folder holding a `state.pt` is resumed."""
+    resumable: bool = False
+    """write `runs/{run_name}/state.pt` every `--state-minutes` and on SIGTERM: an exact resume"""
     state_minutes: float = 10.0
-    """write the full training state `runs/{run_name}/state.pt` every this many wall-time minutes.
-    It is written after the step that ends the interval, and on SIGTERM / SIGUSR2.
-    A 1024-wide state is about 1 GB, so keep writes rare."""
+    """write `state.pt` every this many wall-time minutes (a 1024-wide state is about 1 GB)"""
     checkpoint_freq: Optional[int] = None
     """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
+    query_log: bool = False
+    """write every query asked, with its label, to `runs/{run_name}/preferences/`"""
+    diagnostics: bool = False
+    """log diagnostics: the input layers' weight on real features; PbRL: the reward's fit"""
     teacher: Literal["simulated", "external"] = "simulated"
-    """who answers: B-Pref's simulated teacher, or a person/program via files (docs/labelling.md)"""
+    """B-Pref's simulated teacher, or a person via files (turns on --resumable, --query-log)"""
     preferences: Optional[str] = None
-    """an earlier run's `preferences/` folder, or one `.npz` of it.
-    Its labels seed the reward model's dataset and count in the budget."""
-
-
-def validate_args(args: Args) -> None:
-    """Fail fast on bad input, before anything is written:
-    a ValueError with one line naming the flag."""
-    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
-    if args.track and importlib.util.find_spec("wandb") is None:
-        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
-    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
-    harness_flags |= {"--preferences": args.preferences,
-                      "--teacher external": args.teacher == "external"}
-    given = [flag for flag, on in harness_flags.items() if on]
-    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
-        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
-    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
-        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
-    if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
-        raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
-    if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
-        raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
-    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
-        raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
-    if not args.state_minutes > 0:
-        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
-    if args.max_feedback < 1:
-        raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
-    if args.queries_per_round is None:
-        args.queries_per_round = max(1, args.max_feedback // 100)
-    if args.queries_per_round < 1:
-        raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
-    if not 1 <= args.segment_size <= args.episode_length:
-        raise ValueError(
-            f"--segment-size {args.segment_size} is longer than an episode "
-            f"(--episode-length {args.episode_length})"
-        )
-    if args.learning_starts <= args.knn_k:
-        raise ValueError(
-            f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}"
-        )
-    if args.total_timesteps <= args.learning_starts + args.unsup_steps:
-        raise ValueError(
-            f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
-            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps}"
-        )
-    if args.learning_starts + args.unsup_steps < args.episode_length:
-        raise ValueError(
-            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must "
-            f"cover one episode (--episode-length {args.episode_length}): the first feedback round "
-            f"cuts segments from complete episodes"
-        )
-    if args.buffer_size < args.batch_size:
-        raise ValueError(
-            f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
-        )
-    if args.rune_beta_init < 0.0:
-        raise ValueError(f"--rune-beta-init must be >= 0, got {args.rune_beta_init}")
-    if not 0.0 <= args.rune_beta_decay <= 1.0:
-        raise ValueError(f"--rune-beta-decay must be in [0, 1], got {args.rune_beta_decay}")
-    if not 0.0 < args.teacher_gamma <= 1.0:
-        raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
-    for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
-        if not 0.0 <= getattr(args, flag) <= 1.0:
-            raise ValueError(
-                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
-            )
-    for flag in ("reward_sparsity", "agent_sparsity"):
-        if not 0.0 <= getattr(args, flag) < 1.0:
-            raise ValueError(
-                f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}"
-            )
-    for flag in ("reward_drop_fraction", "agent_drop_fraction"):
-        if not 0.0 <= getattr(args, flag) <= 1.0:
-            raise ValueError(
-                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
-            )
-    for flag in (
-        "reward_topology_period", "agent_topology_period",
-        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
-        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
-        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
-    ):
-        if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    """an earlier run's `preferences/` (or one `.npz`): its labels come first, in the budget"""
 
 
 # ALGO LOGIC: the agent's networks
@@ -1046,294 +924,144 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
-# in the PbRL scripts, the query log, the label files and the reward diagnostics.
-# The same in every script (sac.py, anf_sac.py: a subset); tested.
+# FLAGS: bad input fails fast, before anything is written
+def validate_args(args: Args) -> None:
+    """Fail fast on bad input, before anything is written:
+    a ValueError with one line naming the flag."""
+    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
+    harness_flags |= {"--resumable": args.resumable, "--diagnostics": args.diagnostics}
+    harness_flags |= {"--query-log": args.query_log, "--preferences": args.preferences,
+                      "--teacher external": args.teacher == "external"}
+    given = [flag for flag, on in harness_flags.items() if on]
+    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
+        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
+    if args.teacher == "external":  # a person's labels: bound to their queries, never lost
+        args.resumable = args.query_log = True
+    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
+    if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
+    if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
+        raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
+    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
+        raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
+    if not args.state_minutes > 0:
+        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
+    for flag in ("checkpoint_freq", "keep_state"):
+        if getattr(args, flag) not in (None, False) and not args.resumable:
+            raise ValueError(f"--{flag.replace('_', '-')} writes state.pt: it needs --resumable")
+    if args.max_feedback < 1:
+        raise ValueError(f"--max-feedback {args.max_feedback} is smaller than one query")
+    if args.queries_per_round is None:
+        args.queries_per_round = max(1, args.max_feedback // 100)
+    if args.queries_per_round < 1:
+        raise ValueError(f"--queries-per-round must be >= 1, got {args.queries_per_round}")
+    if not 1 <= args.segment_size <= args.episode_length:
+        raise ValueError(
+            f"--segment-size {args.segment_size} is longer than an episode "
+            f"(--episode-length {args.episode_length})"
+        )
+    if args.learning_starts <= args.knn_k:
+        raise ValueError(
+            f"--learning-starts {args.learning_starts} must exceed --knn-k {args.knn_k}"
+        )
+    if args.total_timesteps <= args.learning_starts + args.unsup_steps:
+        raise ValueError(
+            f"--total-timesteps {args.total_timesteps} leaves no step for feedback after "
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps}"
+        )
+    if args.learning_starts + args.unsup_steps < args.episode_length:
+        raise ValueError(
+            f"--learning-starts + --unsup-steps = {args.learning_starts + args.unsup_steps} must "
+            f"cover one episode (--episode-length {args.episode_length}): the first feedback round "
+            f"cuts segments from complete episodes"
+        )
+    if args.buffer_size < args.batch_size:
+        raise ValueError(
+            f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
+        )
+    if args.rune_beta_init < 0.0:
+        raise ValueError(f"--rune-beta-init must be >= 0, got {args.rune_beta_init}")
+    if not 0.0 <= args.rune_beta_decay <= 1.0:
+        raise ValueError(f"--rune-beta-decay must be in [0, 1], got {args.rune_beta_decay}")
+    if not 0.0 < args.teacher_gamma <= 1.0:
+        raise ValueError(f"--teacher-gamma must be in (0, 1], got {args.teacher_gamma}")
+    for flag in ("teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal"):
+        if not 0.0 <= getattr(args, flag) <= 1.0:
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
+            )
+    for flag in ("reward_sparsity", "agent_sparsity"):
+        if not 0.0 <= getattr(args, flag) < 1.0:
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1), got {getattr(args, flag)}"
+            )
+    for flag in ("reward_drop_fraction", "agent_drop_fraction"):
+        if not 0.0 <= getattr(args, flag) <= 1.0:
+            raise ValueError(
+                f"--{flag.replace('_', '-')} must be in [0, 1], got {getattr(args, flag)}"
+            )
+    for flag in (
+        "reward_topology_period", "agent_topology_period",
+        "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
+        "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
+        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+    ):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+
+
+def uses_run(args: Args) -> bool:
+    """Whether a flag asks for the run harness's hooks (`r2n_harness.run`)."""
+    flags = ("resumable", "query_log", "diagnostics", "preferences")  # those this script has
+    return any(getattr(args, flag, None) for flag in flags)
+
+
+# RUN: the run folder, the logs, the NaN stop. The run harness (resume, the query log, the
+# diagnostics, a person's labels) is the package `r2n_harness`, imported only by its flags.
 def harness(module: str):
     """A module of the run harness's package `r2n_harness`, imported only for the flag that needs it
     (`validate_args` has checked that the package is there)."""
     return importlib.import_module(f"r2n_harness.{module}")
 
 
-def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
-    If a run that started in the same second took that folder (runs of a sweep
-    differ in noise or budget, which the name does not show), try the next."""
+def make_run_folder(args) -> str:
+    """Create `runs/{run_name}` and return its name, by default `{env_id}__{exp_name}__{seed}__{unix
+    time}`. If a run that started in the same second took it (the runs of a sweep differ in flags
+    that the name does not show), the next second's."""
     unix_time = int(time.time())
     while True:
-        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
+        run_name = args.run_name or f"{args.env_id}__{args.exp_name}__{args.seed}__{unix_time}"
         try:
-            # atomic: exactly one of two racing runs gets the folder
-            os.makedirs(f"runs/{run_name}")
+            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets it
             return run_name
         except FileExistsError:
+            if args.run_name:
+                resumable = os.path.exists(f"runs/{run_name}/state.pt") and not args.resumable
+                raise ValueError(f"--run-name {run_name}: runs/{run_name} exists" + (
+                    " and holds a state.pt: add --resumable to resume it" if resumable else
+                    " and holds no state.pt to resume (the run finished, or stopped before its "
+                    "first state); choose another name or move the folder")) from None
             unix_time += 1
 
 
-
-class Progress:
-    """A console line at every phase change and at most every `interval` seconds of
-    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
-    used and the latest evaluation return. Its clock is the run's training time
-    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
-    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
-    at every step: the labelling page's status of a run that a person labels."""
-
-    def __init__(
-        self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None
-    ):
-        self.total_steps = total_steps
-        self.budget = budget
-        self.interval = interval
-        self.on_step = on_step
-        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
-
-    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
-        if self.on_step is not None:
-            self.on_step(step, seconds)
-        now = seconds
-        if phase == self.phase and now - self.time < self.interval:
-            return
-        moved = step > self.step and now > self.time
-        sps = (step - self.step) / (now - self.time) if moved else 0.0
-        percent = 100 * step / self.total_steps
-        line = f"progress: step {step}/{self.total_steps} ({percent:.0f}%) | {phase} | "
-        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
-        line += f"{sps:.0f} SPS | ETA {eta}"
-        if self.budget is not None:
-            line += f" | feedback {feedback}/{self.budget}"
-        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
-        print(line, flush=True)
-        self.phase, self.time, self.step = phase, now, step
-
-    @staticmethod
-    def duration(seconds: float) -> str:
-        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return (
-            f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
-            else f"{hours}h{minutes:02d}m" if hours
-            else f"{minutes}m"
-        )
-
-
-# the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
-# the flags a resume may change, and no others: none of them touches training
-RESUMABLE_FLAGS = (
-    "threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-    "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval",
-)
-
-
-def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name`
-    names a folder holding a `state.pt` (else None)."""
-    if args.run_name is None:
-        return make_run_folder(args.env_id, args.exp_name, args.seed), None
-    path = f"runs/{args.run_name}/state.pt"
-    if not os.path.exists(path):
-        if os.path.exists(f"runs/{args.run_name}"):
-            raise ValueError(
-                f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume "
-                "(the run finished, or stopped before its first state); "
-                "choose another name or move the folder"
-            )
-        os.makedirs(f"runs/{args.run_name}")
-        return args.run_name, None
-    try:
-        # our own file: not only tensors
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
-    except Exception as e:  # not a state file, or a truncated one
-        raise ValueError(
-            f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})"
-        ) from None
-    if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
-        raise ValueError(
-            f"--run-name {args.run_name}: {path} was written by an older version of this script; "
-            "resume it with that version (git checkout 88b95d9)"
-        )
-    # a flag added since: its default
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
-    changed = [
-        f"--{name.replace('_', '-')} {saved[name]} (now {value})"
-        for name, value in vars(args).items()
-        if name not in RESUMABLE_FLAGS and saved[name] != value
-    ]
-    if changed:
-        resumable = ", --".join(flag.replace("_", "-") for flag in RESUMABLE_FLAGS)
-        raise ValueError(
-            f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; "
-            f"a resume may change only --{resumable}"
-        )
-    return args.run_name, state
-
-
-def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename
-    it: a kill during the write leaves the last state."""
-    with open(f"{path}.tmp", "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(f"{path}.tmp", path)
-
-
-# a dataclass's fields of these types are saved as they are
-PLAIN = (int, float, list, dict, deque, type(None))
-
-
-def state_of(obj):
-    """What `state.pt` keeps of an object.
-
-    That is a tensor itself, a sparse optimizer's inner state with its masks and counters,
-    `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
-    or for another plain object (episode store, statistics) its tensors and numbers."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach()
-    if hasattr(obj, "masks"):  # the weights are saved with their networks
-        counters = {name: value for name, value in vars(obj).items() if isinstance(value, int)}
-        return {"optimizer": obj.optimizer.state_dict(), "masks": obj.masks, "counters": counters}
-    if hasattr(obj, "state_dict"):
-        return obj.state_dict()
-    if dataclasses.is_dataclass(obj):
-        return {name: value if isinstance(value, PLAIN) else state_of(value)
-                for name, value in vars(obj).items()}
-    if hasattr(obj, "size"):
-        return stored_rows(obj)
-    return {
-        name: value
-        for name, value in vars(obj).items()
-        if isinstance(value, (torch.Tensor, np.ndarray, int, float))
-    }
-
-
-def stored_rows(buffer) -> dict:
-    """A buffer's numbers and the first `size` rows of its
-    tensors: a slice alone would save the whole preallocation.
-
-    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`,
-    that is at episode ends and in the newest row. The comparison is bitwise."""
-    n = buffer.size
-    state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
-    state["rows"] = {
-        name: x[:n] if n == len(x) else x[:n].clone()
-        for name, x in vars(buffer).items()
-        if isinstance(x, torch.Tensor) and name != "next_obs"
-    }
-    if hasattr(buffer, "next_obs"):
-        own = torch.ones(n, dtype=torch.bool, device=buffer.obs.device)
-        next_bits = buffer.next_obs[: n - 1].view(torch.int32)
-        own[:-1] = (next_bits != buffer.obs[1:n].view(torch.int32)).any(1)
-        state["own_next_obs"] = own
-        state["next_obs"] = buffer.next_obs[:n][own]
-    return state
-
-
-def load_stored_rows_(buffer, state: dict):
-    """Restore what `stored_rows` saved, in place."""
-    for name, rows in state["rows"].items():
-        full = getattr(buffer, name)
-        # a buffer that allocates its rows at the first add (SURF's segments)
-        if full.shape[1:] != rows.shape[1:]:
-            full = full.new_zeros((len(full), *rows.shape[1:]))
-            setattr(buffer, name, full)
-        full[: len(rows)] = rows
-    if "next_obs" in state:
-        n, own = state["size"], state["own_next_obs"].to(buffer.obs.device)
-        buffer.next_obs[: n - 1] = buffer.obs[1:n]
-        buffer.next_obs[:n][own] = state["next_obs"].to(buffer.obs.device)
-    for name, value in state.items():
-        if isinstance(value, (int, float)):
-            setattr(buffer, name, value)
-
-
-@torch.no_grad()
-def load_state_(obj, state):
-    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
-    if isinstance(obj, torch.Tensor):
-        obj.copy_(state)
-    elif hasattr(obj, "masks"):
-        obj.optimizer.load_state_dict(state["optimizer"])
-        for name, mask in obj.masks.items():
-            mask.copy_(state["masks"][name])
-        vars(obj).update(state["counters"])
-    elif hasattr(obj, "load_state_dict"):
-        obj.load_state_dict(state)
-    # what `state_of` saved as it was is set, the rest restored in place
-    elif dataclasses.is_dataclass(obj):
-        for name, value in state.items():
-            if isinstance(getattr(obj, name), PLAIN):
-                setattr(obj, name, value)
-            else:
-                load_state_(getattr(obj, name), value)
-    elif hasattr(obj, "size"):
-        load_stored_rows_(obj, state)
-    else:
-        for name, value in state.items():
-            if isinstance(value, torch.Tensor):
-                getattr(obj, name).copy_(value)
-            else:
-                setattr(obj, name, value)
-
-
-def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's
-    (and the GPU's on one); the envs keep their own."""
-    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
-    return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-        "cuda": cuda,
-    }
-
-
-def set_rng_states(states: dict, device: torch.device):
-    random.setstate(states["python"])
-    np.random.set_state(states["numpy"])
-    torch.set_rng_state(states["torch"])
-    if states["cuda"] is not None and device.type == "cuda":
-        torch.cuda.set_rng_state(states["cuda"], device)
-
-
-
-def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
+def open_writer(args, run_name: str, resume_step: Optional[int]) -> SummaryWriter:
     """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the
     points the interrupted one logged after its state (TensorBoard's purge_step)."""
     if args.track:
         import wandb
 
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            id=run_name,
-            resume="allow",
-            monitor_gym=True,
-            save_code=True,
-        )
-    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
-    if resume is None:
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity,
+                   sync_tensorboard=True, config=vars(args), name=run_name, id=run_name,
+                   resume="allow", monitor_gym=True, save_code=True)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume_step)
+    if resume_step is None:
         table = "\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])
         writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
     return writer
-
-
-def catch_stop_signals() -> list:
-    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the
-    returned list; the loop then saves the state at the end of its step and exits."""
-    stop_signals = []
-    for signum in (signal.SIGTERM, signal.SIGUSR2):
-        signal.signal(
-            signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name)
-        )
-    return stop_signals
-
-
-class Stopped(Exception):
-    """SIGTERM or SIGUSR2: the state is saved; the run exits
-    with exit code 1 and one line saying how to resume."""
 
 
 class NonFinite(Exception):
@@ -1347,16 +1075,20 @@ def check_finite(values: dict, step: int):
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
 
 
-def log_evaluation(writer: SummaryWriter, global_step: int, eval_return: float, eval_seconds: float,
-                   sps: int, shares: dict, loop, progress: Progress, counts: str = ""):
-    """An evaluation's tags (kept in `loop.last_eval`, logged again after a resume's purge), its
-    console line (`counts`: the PbRL scripts' feedback) and the NaN stop."""
-    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | shares
+def log_evaluation(writer: SummaryWriter, global_step: int, actor: Actor, envs: list,
+                   device: torch.device, start_time: float, loop: Loop, args: Args, more: dict):
+    """Evaluate the policy, log its tags and `more` (kept in `loop.last_eval`: a resume logs them
+    again), print a console line, and stop on a non-finite return. `start_time`: the training
+    clock's start, so that SPS counts training time only."""
+    started = time.time()
+    eval_return = float(evaluate(actor, envs, device).mean())
+    sps = int((global_step + 1) / (time.time() - start_time))
+    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | more
     for tag, value in loop.last_eval.items():
         writer.add_scalar(tag, value, global_step + 1)
     print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-          f"eval_seconds={eval_seconds:.2f}{counts}", flush=True)
-    progress.eval_return = eval_return
+          f"eval_seconds={time.time() - started:.2f} feedback={loop.total_feedback}/"
+          f"{args.max_feedback} labels={loop.labeled_feedback}", flush=True)
     check_finite({"eval/episodic_return": eval_return}, global_step)
 
 
@@ -1369,235 +1101,13 @@ def log_losses(writer: SummaryWriter, global_step: int, losses: dict):
     check_finite(logged, global_step)
 
 
-def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
-               device: torch.device, envs: list, writer: SummaryWriter):
-    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
-    the `saved` objects, the generators, the envs' generators and the observation to act on."""
-    started = time.time()
-    # the points up to this step are on disk before a state that a resume purges back to
-    writer.flush()
-    save_atomically({
-        "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
-        "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
-        "envs": [e.rng_state() for e in envs],
-    }, path)
-    print(f"state saved after step {global_step + 1}: {os.path.getsize(path) / 1e9:.2f} GB in "
-          f"{time.time() - started:.1f} s", flush=True)
-
-
-def state_due(global_step: int, args, last_state: float) -> bool:
-    """Whether `state.pt` is written after this step: `state_minutes` after the
-    last one (`last_state`, from `time.monotonic`), or every `checkpoint_freq`
-    steps if set; at the last step only with `keep_state`."""
-    if global_step + 1 == args.total_timesteps:
-        return args.keep_state
-    if args.checkpoint_freq is not None:
-        return (global_step + 1) % args.checkpoint_freq == 0
-    return time.monotonic() - last_state >= 60 * args.state_minutes
-
-
-def restore_run(
-    resume: Optional[dict], saved: dict, envs: list, args, device: torch.device,
-    writer: SummaryWriter, progress: Progress, state_path: str,
-) -> tuple:
-    """Start, or continue from the saved state: restore the `saved` objects, replay the
-    running episode on `envs[0]` to where the saved run was, then restore the generators.
-    Returns (observation, first step, seconds trained)."""
-    loop = saved["loop"]
-    if resume is not None:
-        for name, obj in saved.items():
-            load_state_(obj, resume["objects"][name])
-        loop.losses = {name: value.to(device) for name, value in loop.losses.items()}
-    obs = ene.replay_episode(envs[0], args.seed, loop.episode_start, loop.episode_actions)
-    if resume is None:
-        return obs, 0, 0.0
-    set_rng_states(resume["rng"], device)
-    for e, state in zip(envs, resume["envs"]):
-        e.set_rng_state(state)
-    if not np.array_equal(obs, resume["obs"].cpu().numpy()):
-        print(
-            f"{args.exp_name}: warning: the replayed episode differs from the saved one "
-            "(another MuJoCo?); the run continues, not bitwise as uninterrupted",
-            flush=True,
-        )
-    start_step = resume["global_step"]
-    progress.step = resume["global_step"]
-    progress.time = resume["elapsed"]
-    # the purge hid the step's evaluation
-    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
-        for tag, value in loop.last_eval.items():
-            writer.add_scalar(tag, value, start_step)
-    progress.eval_return = loop.last_eval.get("eval/episodic_return")
-    print(f"resuming {state_path} at step {start_step}", flush=True)
-    return obs, start_step, resume["elapsed"]
-
-
-# the queries and labels of a run (`preferences/`) and the external teacher (docs/labelling.md)
-def write_npz(path: str, **arrays):
-    """`np.savez` to a temp file, then rename: no reader sees half a file; a kill keeps the last."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(f"{path}.tmp", "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(f"{path}.tmp", path)
-
-
-class QueryLog:
-    """Every query asked so far, on the host: both segments' [obs, action] rows (noise included),
-    true rewards and physics states, the label (NaN: skipped), the round (-1: `--preferences`), the
-    env step. Per round, the SHA-256 of its labels file (`--teacher external`; else empty). The
-    run's folder `preferences/` holds it too, one file per round (`read_preferences` joins them)."""
-
-    def __init__(self, segment_steps: int, input_dim: int, physics_dim: int):
-        self.inputs = np.zeros((0, 2, segment_steps, input_dim), np.float32)
-        self.true_rewards = np.zeros((0, 2, segment_steps), np.float32)
-        self.physics = np.zeros((0, 2, segment_steps, physics_dim))
-        self.labels, self.rounds, self.steps = (
-            np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros(0, np.int64)
-        )
-        self.label_sha256 = np.zeros(0, "<U64")  # indexed by round
-
-    @property
-    def next_round(self) -> int:
-        return int(self.rounds.max(initial=-1)) + 1
-
-    def add(self, inputs, true_rewards, physics, labels, round_index: int, step: int,
-            label_sha256: str = ""):
-        new = dict(inputs=inputs, true_rewards=true_rewards, physics=physics, labels=labels,
-                   rounds=np.full(len(labels), round_index), steps=np.full(len(labels), step))
-        for name, value in new.items():
-            setattr(self, name, np.concatenate([getattr(self, name),
-                                                np.asarray(value, getattr(self, name).dtype)]))
-        if round_index >= 0:  # padded: older states (no SHA-256 kept) resume with none per round
-            self.label_sha256 = np.concatenate([
-                self.label_sha256, np.full(round_index - len(self.label_sha256), ""), [label_sha256]
-            ]).astype("<U64")
-
-    def save_round(self, folder: str, env_id: str, obs_dim: int, round_index: int):
-        """Write one round's queries to `{folder}/{round}.npz` (from `--preferences`: `seeded.npz`).
-        Each round has its own file: it writes its own queries, not the whole log again."""
-        rows = self.rounds == round_index
-        inputs = self.inputs[rows]
-        sha256 = (self.label_sha256[round_index:round_index + 1] if round_index >= 0
-                  else self.label_sha256[:0])
-        name = round_index if round_index >= 0 else "seeded"
-        write_npz(f"{folder}/{name}.npz", env_id=env_id, obs=inputs[..., :obs_dim],
-                  actions=inputs[..., obs_dim:], true_rewards=self.true_rewards[rows],
-                  physics=self.physics[rows], labels=self.labels[rows], rounds=self.rounds[rows],
-                  steps=self.steps[rows], label_sha256=sha256)
-
-
-def run_feedback_round(sampling: str, global_step: int, queries: "QueryLog",
-                       diagnostic_positions: torch.Tensor, writer: SummaryWriter, run_folder: str,
-                       external, **objects) -> float:
-    """The method's `feedback_round` in a run: its teacher (`--teacher`), the query log
-    (`preferences/`), the round's tags and the finite check. `objects`: what `feedback_round` reads
-    and changes, by name. Returns the seconds spent waiting for an external teacher (not training
-    time)."""
-    loop, args, rb = objects["loop"], objects["args"], objects["rb"]
-    obs_dim, waited = rb.obs.shape[1], []
-
-    def ask(segments, true_rewards, physics, shown=slice(None)):
-        """Labels of the steps `shown` (SURF pads them with its crop's steps): from a person or a
-        program through files (labelling by hand), else from the simulated teacher. The whole
-        segments go to the query log."""
-        if external and len(segments):
-            keep, labels, sha256, seconds = external.ask(
-                queries.next_round, args.env_id, obs_dim, segments[:, :, shown],
-                true_rewards[:, :, shown], physics[:, :, shown], global_step, loop.total_feedback,
-                loop.labeled_feedback,
-            )
-        else:
-            keep, labels = simulated_teacher(true_rewards[:, :, shown], loop.recent_returns, args)
-            sha256, seconds = "", 0.0
-        log_queries(queries, f"{run_folder}/preferences", args.env_id, obs_dim, segments,
-                    true_rewards, physics, torch.where(keep, labels, torch.nan), global_step,
-                    sha256)
-        waited.append(seconds)
-        return keep, labels
-
-    trained = feedback_round(sampling, ask=ask, **objects)
+def log_round(writer: SummaryWriter, global_step: int, trained: dict, loop: Loop):
+    """A feedback round's tags: the reward training's and the feedback counts; the NaN stop."""
     trained |= {"pbrl/total_feedback": loop.total_feedback,
-                "pbrl/labeled_feedback": loop.labeled_feedback,
-                "pbrl/reward_steps": optimizer_steps(objects["reward_optimizer"])}
+                "pbrl/labeled_feedback": loop.labeled_feedback}
     for tag, value in trained.items():
         writer.add_scalar(tag, value, global_step)
     check_finite(trained, global_step)
-    log_reward_diagnostics(writer, global_step, args.seed, objects["reward_model"], rb,
-                           objects["episodes"], diagnostic_positions, args.diagnostic_pairs,
-                           args.segment_size)
-    return sum(waited)
-
-
-def log_queries(queries: "QueryLog", folder: str, env_id: str, obs_dim: int,
-                segments: torch.Tensor, true_rewards: torch.Tensor, physics: np.ndarray,
-                labels: torch.Tensor, step: int, sha256: str):
-    """Add a round's queries to the run's query log and write them to `{folder}/{round}.npz`.
-    Labels are NaN where skipped."""
-    round_index = queries.next_round
-    queries.add(segments.cpu().numpy(), true_rewards.cpu().numpy(), physics, labels.cpu().numpy(),
-                round_index, step, sha256)
-    queries.save_round(folder, env_id, obs_dim, round_index)
-
-
-def optimizer_steps(optimizer) -> int:
-    """Optimiser steps so far (`pbrl/reward_steps`): Adam's count, via a wrapper's `optimizer`."""
-    states = getattr(optimizer, "optimizer", optimizer).state.values()
-    return max((int(state["step"]) for state in states), default=0)
-
-
-@torch.no_grad()
-def log_reward_diagnostics(writer: SummaryWriter, global_step: int, seed: int, model: nn.Module, rb,
-                           store, positions: torch.Tensor, n_pairs: int, segment_size: int):
-    """How well the ensemble mean tracks the true reward (logs only): Pearson correlation on stored
-    transitions at fixed relative buffer `positions`; preference accuracy against the oracle on
-    `n_pairs` fresh segment pairs, never in the dataset or budget, ties left out. A generator of
-    their own makes the pairs fresh each round, the same in a rerun, training's draws unchanged."""
-    device, noise = rb.obs.device, rb.noise
-    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-        torch.manual_seed(seed + global_step)
-        idx = (positions * rb.size).long()
-        predicted = model(torch.cat([read_noisy(rb.obs[idx], noise), rb.actions[idx]], 1)).mean(0)
-        correlation = torch.corrcoef(torch.stack([predicted, rb.true_rewards[idx]]))[0, 1]
-        segments, true_rewards = store.sample_segments(n_pairs, segment_size)
-        returns = (model(read_noisy(segments, noise).flatten(0, 2)).mean(0)
-                   .view(*segments.shape[:3]).sum(-1))
-        _, labels = teacher(true_rewards[:, 0], true_rewards[:, 1], 0.0, -1.0, 1.0, 0.0, 0.0, 0.0)
-    strict = true_rewards[:, 0].sum(-1) != true_rewards[:, 1].sum(-1)
-    accuracy = (((returns[:, 1] > returns[:, 0]).float() == labels) & strict).sum() / strict.sum()
-    correlation, accuracy = torch.stack([correlation, accuracy]).tolist()
-    writer.add_scalar("pbrl/reward_true_corr", correlation, global_step)
-    writer.add_scalar("pbrl/heldout_accuracy", accuracy, global_step)
-
-def input_layers(agent) -> dict:
-    """The input layers of the actor and of both critics, by the names the logs use."""
-    return {name: getattr(agent, name).net[0].weight for name in ("actor", "qf1", "qf2")}
-
-
-@torch.no_grad()
-def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
-    """The share of an input layer's absolute weight on relevant columns, and its chance level.
-
-    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features
-    and the actions, as in `relevant_active_frac`. Chance is the relevant columns' share of all
-    columns. A zero weight adds nothing, so a sparse layer counts its active weights only."""
-    column = torch.arange(weight.shape[-1], device=weight.device)
-    relevant = (column < obs_dim_real) | (column >= obs_dim)
-    magnitude = weight.abs().sum(0)
-    return magnitude[relevant].sum() / magnitude.sum(), relevant.float().mean()
-
-
-def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
-    """The tags `features/{net}/relevant_weight_frac` and
-    `features/{net}/chance` of each layer, as floats.
-
-    It reads the weights only, so a run's numbers are the same with or without it.
-    One host sync per call."""
-    values = {}
-    for name, weight in layers.items():
-        frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
-        values[f"features/{name}/relevant_weight_frac"] = frac
-        values[f"features/{name}/chance"] = chance
-    return dict(zip(values, torch.stack(list(values.values())).tolist()))
 
 
 if __name__ == "__main__":
@@ -1606,18 +1116,13 @@ if __name__ == "__main__":
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
                            args.noise_histograms, args.episode_length)
-        input_dim = env.observation_space.shape[0] + env.action_space.shape[0]
-        preferences = args.preferences and harness("preferences").load_preferences(
-            args.preferences, args.env_id, input_dim, args.segment_size, args.max_feedback)
-        run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
-        if resume and args.teacher == "external":
-            harness("external_teacher").check_labels_unchanged(f"runs/{run_name}",
-                                                               resume["objects"]["queries"])
+        # the run harness, for its flags: resume, the query log, diagnostics, a person's labels
+        run = harness("run").Run(args, env, make_run_folder) if uses_run(args) else None
+        run_name = run.name if run else make_run_folder(args)
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
-    run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
-    checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    video_folder = run.video_folder if run else f"videos/{run_name}"
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type,
@@ -1628,7 +1133,7 @@ if __name__ == "__main__":
     ]
     for i, eval_env in enumerate(eval_envs):
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
-    writer = open_writer(args, run_name, resume)
+    writer = open_writer(args, run_name, run and run.start_step)
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -1666,42 +1171,28 @@ if __name__ == "__main__":
     episodes = EpisodeStore(args.segment_episodes, args.episode_length, obs_dim, act_dim, device)
     prefs = PreferenceBuffer(args.max_feedback, args.segment_size, obs_dim + act_dim, device, noise)
     entropy_stats = RunningMeanStd(device)
-    queries = QueryLog(args.segment_size, obs_dim + act_dim, len(env.physics_state()))
-    # the relative buffer positions of `pbrl/reward_true_corr`: fixed for the run, own generator
-    diagnostic_positions = torch.rand(args.diagnostic_transitions,
-                                      generator=torch.Generator().manual_seed(args.seed)).to(device)
     loop = Loop()
-    if preferences:  # an earlier run's labels: the dataset's first pairs, counted in the budget
-        harness("preferences").add_preferences(preferences, queries, prefs, loop, run_folder,
-                                               args.env_id, obs_dim, device)
-    # everything the loop changes, by name: `state.pt` saves and restores exactly these
+    # everything the loop changes, by name (what `--resumable` saves and restores)
     saved = dict(agent=agent, reward_model=reward_model, reward_optimizer=reward_optimizer, rb=rb,
-                 episodes=episodes, prefs=prefs, entropy_stats=entropy_stats, queries=queries,
-                 loop=loop)
+                 episodes=episodes, prefs=prefs, entropy_stats=entropy_stats, loop=loop)
 
-    # TRY NOT TO MODIFY: start the game, or continue it from the saved state
-    stop_signals = catch_stop_signals()
-    external = (harness("external_teacher").ExternalTeacher(run_folder, args, stop_signals, Stopped)
-                if args.teacher == "external" else None)
-    progress = Progress(args.total_timesteps, args.max_feedback,
-                        on_step=external.training if external else None)
-    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer,
-                                           progress, state_path)
-    del resume
+    def ask(segments, true_rewards, physics):
+        """A feedback round's teacher: B-Pref's simulated one."""
+        return simulated_teacher(true_rewards, loop.recent_returns, args)
+
+    # TRY NOT TO MODIFY: start the game (the harness may continue it from its saved state)
+    if run:
+        obs, start_step, elapsed = run.start(saved, [env, *eval_envs], device, writer)
+        ask = run.teacher(ask)  # the query log, or a person's labels
+    else:
+        (obs, _), start_step, elapsed = env.reset(seed=args.seed), 0, 0.0
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
-    last_state = time.monotonic()  # the clock of `--state-minutes`
     pebble_start = args.learning_starts + args.unsup_steps
-    objects = dict(  # what a feedback round reads and changes, by name
-        loop=loop, args=args, reward_model=reward_model, reward_optimizer=reward_optimizer,
-        episodes=episodes, prefs=prefs, rb=rb, queries=queries, external=external,
-        diagnostic_positions=diagnostic_positions, writer=writer, run_folder=run_folder,
-    )
     try:
         for global_step in range(start_step, args.total_timesteps):
-            phase = ("random" if global_step < args.learning_starts
-                     else "pre-training" if global_step < pebble_start else "PbRL")
-            progress.update(global_step, phase, time.time() - start_time, loop.total_feedback)
+            if run:
+                run.step_starts(global_step, start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()
@@ -1744,7 +1235,9 @@ if __name__ == "__main__":
                     sac_update(agent, data._replace(rewards=intrinsic_reward), loop, args)
                     loop.losses["state_entropy_reward"] = intrinsic_reward.mean()
                 elif global_step == pebble_start:  # the first round; a fresh critic on its reward
-                    start_time += run_feedback_round("uniform", global_step, **objects)
+                    trained = feedback_round("uniform", loop, args, reward_model, reward_optimizer,
+                                             episodes, prefs, rb, ask)
+                    log_round(writer, global_step, trained, loop)
                     agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = (
                         make_critic(obs_dim, act_dim, args, device)
                     )
@@ -1752,8 +1245,9 @@ if __name__ == "__main__":
                         sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)
                 else:
                     if feedback_due(global_step, pebble_start, loop, args):
-                        start_time += run_feedback_round(args.query_sampling, global_step,
-                                                         **objects)
+                        trained = feedback_round(args.query_sampling, loop, args, reward_model,
+                                                 reward_optimizer, episodes, prefs, rb, ask)
+                        log_round(writer, global_step, trained, loop)
                     sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)
 
                 if global_step % args.log_freq == 0:
@@ -1762,53 +1256,31 @@ if __name__ == "__main__":
                         writer.add_scalar("pbrl/beta", beta, global_step)
 
             if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
-                eval_start = time.time()
-                eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
-                eval_seconds = time.time() - eval_start
-                sps = int((global_step + 1) / (time.time() - start_time))
-                shares = weight_shares(input_layers(agent), obs_dim_real, obs_dim)
-                members = {f"reward{i}": weight for i, weight in enumerate(reward_model.weights[0])}
-                shares |= weight_shares(members, obs_dim_real, obs_dim)
+                log_evaluation(writer, global_step, agent.actor, eval_envs, device,
+                               start_time + (run.waited if run else 0.0), loop, args,
+                               run.eval_tags() if run else {})
                 for opt in sparse_optimizers(saved):
                     for name, weight in opt.named_matrices(opt.layers):
                         for tag, value in connectivity(weight, obs_dim_real, obs_dim).items():
                             writer.add_scalar(f"sparse/{name}/{tag}", value.item(), global_step + 1)
                         writer.add_scalar(f"sparse/{name}/topology_updates", opt.topology_updates,
                                           global_step + 1)
-                counts = (f" feedback={loop.total_feedback}/{args.max_feedback} "
-                          f"labels={loop.labeled_feedback}")
-                log_evaluation(writer, global_step, eval_return, eval_seconds, sps, shares, loop,
-                               progress, counts)
                 if args.save_model:
                     save_checkpoint(checkpoint_path, args, global_step, saved, dims)
 
-            # and before a person's round, so that a resume goes back into it
-            if stop_signals or state_due(global_step, args, last_state) or (
-                external and feedback_due(global_step + 1, pebble_start, loop, args)
-            ):
-                save_state(state_path, args, global_step, time.time() - start_time, obs, saved,
-                           device, [env, *eval_envs], writer)
-                last_state = time.monotonic()
-                if stop_signals:
-                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; "
-                                  f"state saved in {state_path}: run the same command with "
-                                  f"--run-name {run_name} to resume")
-    except (Stopped, NonFinite) as e:
-        if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
-            save_checkpoint(checkpoint_path, args, global_step, saved, dims)
-            e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
-        if external:
-            external.tell("stopped", global_step, loop.total_feedback, loop.labeled_feedback,
-                          message=str(e))
+            if run:  # `state.pt` when due, at a stop signal, and before a person's round
+                run.step_ends(global_step, obs, start_time,
+                              feedback_due(global_step + 1, pebble_start, loop, args))
+    except NonFinite as e:  # the checkpoint is written first, for debugging
+        save_checkpoint(checkpoint_path, args, global_step, saved, dims)
+        message = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
+        if run:
+            raise run.stop(message)
         writer.close()
-        raise SystemExit(f"{args.exp_name}: {e}")
+        raise SystemExit(f"{args.exp_name}: {message}")
 
     for each in (env, *eval_envs):
         each.close()
     writer.close()
-    if external:
-        external.tell("finished", args.total_timesteps, loop.total_feedback, loop.labeled_feedback)
-    # last: a kill before this leaves a state to resume
-    if not args.keep_state and os.path.exists(state_path):
-        # the run is complete: what it leaves is the event file and the checkpoint
-        os.remove(state_path)
+    if run:  # last: a kill before this leaves a state to resume
+        run.finish()

@@ -2,37 +2,19 @@
 """SAC on the true reward in an Extremely Noisy Environment, the PbRL scripts' oracle: docs/sac.md.
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
-
-SAC: Haarnoja et al., "Soft Actor-Critic Algorithms and Applications" (2018), exactly the SAC inside
-`pebble.py` (networks, update, flags and defaults from the R2N paper's appendix), but the replay
-buffer stores the env's reward, not a learned one: `diff sac.py pebble.py` shows only PEBBLE. The
-loop, one iteration per env step:
-
-1. `global_step < learning_starts`: uniform random actions, no learning.
-2. then one SAC update per step on the true reward.
-Evaluation every `eval_freq` steps: `eval_episodes` deterministic episodes on own envs, true reward.
-
-Two uses: the upper bound ("SAC with the true reward") for PbRL curves at equal `--noise`, with the
-noise redrawn (with it stored, SAC falls below PEBBLE at the studies' scale); with `--noise 0`, a
-noise-free policy whose deterministic rollouts give `--noise-type imitate` its histograms
-(`make_histograms.py`). Choices where the paper is silent, from `pebble.py`: a stored observation
-keeps its noise (`--noise-resample` redraws it in replay minibatches, like ANF's code). Critics
-bootstrap on `terminated` only. `make_critic` stays a function (PEBBLE resets critics) for
-byte-identical shared code.
-
-Only `ene.py`, the noisy environment, is shared with the other scripts.
-`--help` documents every flag.
+SAC: Haarnoja et al., "Soft Actor-Critic Algorithms and Applications", 2018: the SAC inside
+`pebble.py` (networks, update, flags, defaults), on the env's reward: `diff sac.py pebble.py` is
+PEBBLE. The upper bound of the PbRL curves, and with `--noise 0` the policy whose rollouts give
+`--noise-type imitate` its histograms (`make_histograms.py`).
+Choices where the paper is silent, and each step in detail: the docs page.
 """
-import dataclasses
 import importlib
 import importlib.util
 import math
 import os
 import random
-import signal
 import time
-from collections import deque
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Literal, NamedTuple, Optional
 
 import numpy as np
@@ -59,8 +41,7 @@ class Args:
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
     """noise features: i.i.d. N(0, 1), or imitating the real features' histograms"""
     noise_resample: bool = False
-    """redraw the noise columns of stored observations each time they are read (ANF's code);
-    off, the default, they are stored as the environment returned them (B-Pref's buffers)"""
+    """redraw stored observations' noise at each read (ANF's code); off: as stored (B-Pref's)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
     episode_length: int = 1000
@@ -114,11 +95,9 @@ class Args:
     """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
     Faster; numerics differ from FP32."""
     cuda_graph: bool = False
-    """replay the SAC steps' gradients as CUDA graphs (GPU only).
-    Faster; the same numbers as eager on that GPU."""
+    """replay the SAC steps' gradients as CUDA graphs (GPU only): faster, eager's numbers"""
     parallel_eval: bool = False
-    """step the evaluation envs at once, each in its own process.
-    Faster where cores are free; the same returns."""
+    """step the evaluation envs at once, each in its own process: the same returns"""
     track: bool = False
     """if toggled, this experiment will be tracked with Weights and Biases"""
     wandb_project_name: str = "r2n"
@@ -126,59 +105,26 @@ class Args:
     wandb_entity: Optional[str] = None
     """the entity (team) of wandb's project"""
     capture_video: bool = False
-    """whether to capture videos of the first evaluation env (`videos/{run_name}`).
-    Needs the `video` extra."""
+    """capture videos of the first evaluation env in `videos/{run_name}` (the `video` extra)"""
     save_model: bool = True
-    """whether to save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model`.
-    It is written at every evaluation."""
+    """save the checkpoint `runs/{run_name}/{exp_name}.cleanrl_model` at every evaluation"""
     threads: Optional[int] = None
     """torch intra-op threads. Unset: 1 on CPU (runs share a machine), torch's default on GPU."""
     log_freq: int = 1000
-    """log the SAC losses every `log_freq` steps, a host sync; the loop's others are each step's
-    action for the env and the reads of a feedback round and of a topology update"""
+    """log the SAC losses every this many steps (a host sync: docs/running.md)"""
     run_name: Optional[str] = None
     """the run folder `runs/{run_name}` (unset: `{env_id}__{exp_name}__{seed}__{time}`).
-    A folder holding a `state.pt` is resumed."""
+    With `--resumable`, a folder holding a `state.pt` is resumed."""
+    resumable: bool = False
+    """write `runs/{run_name}/state.pt` every `--state-minutes` and on SIGTERM: an exact resume"""
     state_minutes: float = 10.0
-    """write the full training state `runs/{run_name}/state.pt` every this many wall-time minutes.
-    It is written after the step that ends the interval, and on SIGTERM / SIGUSR2.
-    A 1024-wide state is about 1 GB, so keep writes rare."""
+    """write `state.pt` every this many wall-time minutes (a 1024-wide state is about 1 GB)"""
     checkpoint_freq: Optional[int] = None
     """write `state.pt` every this many steps instead of by wall time (tests, exact comparisons)"""
     keep_state: bool = False
     """keep `state.pt` when the run ends (by default it is deleted then: the run needs no resume)"""
-
-
-def validate_args(args: Args) -> None:
-    """Fail fast on bad input, before anything is written:
-    a ValueError with one line naming the flag."""
-    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
-    if args.track and importlib.util.find_spec("wandb") is None:
-        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
-    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
-    given = [flag for flag, on in harness_flags.items() if on]
-    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
-        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
-    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
-        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
-    if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
-        raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
-    if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
-        raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
-    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
-        raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
-    if not args.state_minutes > 0:
-        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
-    if args.buffer_size < args.batch_size:
-        raise ValueError(
-            f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
-        )
-    for flag in (
-        "episode_length", "eval_freq",
-        "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq",
-    ):
-        if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    diagnostics: bool = False
+    """log diagnostics: the input layers' weight on real features; PbRL: the reward's fit"""
 
 
 # ALGO LOGIC: the agent's networks
@@ -474,294 +420,91 @@ def save_checkpoint(path: str, args: Args, global_step: int, saved: dict, dims: 
     torch.save(checkpoint, path)
 
 
-# RUN PLUMBING: the run folder, progress, `state.pt` (exact resume), the NaN stop;
-# in the PbRL scripts, the query log, the label files and the reward diagnostics.
-# The same in every script (sac.py, anf_sac.py: a subset); tested.
+# FLAGS: bad input fails fast, before anything is written
+def validate_args(args: Args) -> None:
+    """Fail fast on bad input, before anything is written:
+    a ValueError with one line naming the flag."""
+    ene.check_env_args(args.env_id, args.noise, args.noise_type, args.noise_histograms)
+    if args.track and importlib.util.find_spec("wandb") is None:
+        raise ValueError("--track needs wandb: pip install -e '.[wandb]'")
+    harness_flags = {"--cuda-graph": args.cuda_graph}  # the flags that need the harness's package
+    harness_flags |= {"--resumable": args.resumable, "--diagnostics": args.diagnostics}
+    given = [flag for flag, on in harness_flags.items() if on]
+    if given and importlib.util.find_spec("r2n_harness") is None:  # a copy of this file without it
+        raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
+    if args.tf32 and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
+    if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
+        raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
+    if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
+        raise ValueError(f"--run-name must be a folder name without '/', got {args.run_name!r}")
+    if args.checkpoint_freq is not None and args.checkpoint_freq < 1:
+        raise ValueError(f"--checkpoint-freq must be >= 1, got {args.checkpoint_freq}")
+    if not args.state_minutes > 0:
+        raise ValueError(f"--state-minutes must be > 0, got {args.state_minutes}")
+    for flag in ("checkpoint_freq", "keep_state"):
+        if getattr(args, flag) not in (None, False) and not args.resumable:
+            raise ValueError(f"--{flag.replace('_', '-')} writes state.pt: it needs --resumable")
+    if args.buffer_size < args.batch_size:
+        raise ValueError(
+            f"--buffer-size {args.buffer_size} is smaller than --batch-size {args.batch_size}"
+        )
+    for flag in (
+        "episode_length", "eval_freq",
+        "eval_episodes", "log_freq", "actor_update_freq", "target_update_freq",
+    ):
+        if getattr(args, flag) < 1:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+
+
+def uses_run(args: Args) -> bool:
+    """Whether a flag asks for the run harness's hooks (`r2n_harness.run`)."""
+    flags = ("resumable", "query_log", "diagnostics", "preferences")  # those this script has
+    return any(getattr(args, flag, None) for flag in flags)
+
+
+# RUN: the run folder, the logs, the NaN stop. The run harness (resume, the query log, the
+# diagnostics, a person's labels) is the package `r2n_harness`, imported only by its flags.
 def harness(module: str):
     """A module of the run harness's package `r2n_harness`, imported only for the flag that needs it
     (`validate_args` has checked that the package is there)."""
     return importlib.import_module(f"r2n_harness.{module}")
 
 
-def make_run_folder(env_id: str, exp_name: str, seed: int) -> str:
-    """Create `runs/{env_id}__{exp_name}__{seed}__{unix_time}` and return its name.
-    If a run that started in the same second took that folder (runs of a sweep
-    differ in noise or budget, which the name does not show), try the next."""
+def make_run_folder(args) -> str:
+    """Create `runs/{run_name}` and return its name, by default `{env_id}__{exp_name}__{seed}__{unix
+    time}`. If a run that started in the same second took it (the runs of a sweep differ in flags
+    that the name does not show), the next second's."""
     unix_time = int(time.time())
     while True:
-        run_name = f"{env_id}__{exp_name}__{seed}__{unix_time}"
+        run_name = args.run_name or f"{args.env_id}__{args.exp_name}__{args.seed}__{unix_time}"
         try:
-            # atomic: exactly one of two racing runs gets the folder
-            os.makedirs(f"runs/{run_name}")
+            os.makedirs(f"runs/{run_name}")  # atomic: exactly one of two racing runs gets it
             return run_name
         except FileExistsError:
+            if args.run_name:
+                resumable = os.path.exists(f"runs/{run_name}/state.pt") and not args.resumable
+                raise ValueError(f"--run-name {run_name}: runs/{run_name} exists" + (
+                    " and holds a state.pt: add --resumable to resume it" if resumable else
+                    " and holds no state.pt to resume (the run finished, or stopped before its "
+                    "first state); choose another name or move the folder")) from None
             unix_time += 1
 
 
-
-class Progress:
-    """A console line at every phase change and at most every `interval` seconds of
-    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
-    used and the latest evaluation return. Its clock is the run's training time
-    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
-    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
-    at every step: the labelling page's status of a run that a person labels."""
-
-    def __init__(
-        self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None
-    ):
-        self.total_steps = total_steps
-        self.budget = budget
-        self.interval = interval
-        self.on_step = on_step
-        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
-
-    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
-        if self.on_step is not None:
-            self.on_step(step, seconds)
-        now = seconds
-        if phase == self.phase and now - self.time < self.interval:
-            return
-        moved = step > self.step and now > self.time
-        sps = (step - self.step) / (now - self.time) if moved else 0.0
-        percent = 100 * step / self.total_steps
-        line = f"progress: step {step}/{self.total_steps} ({percent:.0f}%) | {phase} | "
-        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
-        line += f"{sps:.0f} SPS | ETA {eta}"
-        if self.budget is not None:
-            line += f" | feedback {feedback}/{self.budget}"
-        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
-        print(line, flush=True)
-        self.phase, self.time, self.step = phase, now, step
-
-    @staticmethod
-    def duration(seconds: float) -> str:
-        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return (
-            f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
-            else f"{hours}h{minutes:02d}m" if hours
-            else f"{minutes}m"
-        )
-
-
-# the training state `state.pt`, for exact resume (docs/running.md: "Resuming a run")
-# the flags a resume may change, and no others: none of them touches training
-RESUMABLE_FLAGS = (
-    "threads", "cuda", "track", "wandb_project_name", "wandb_entity", "capture_video", "save_model",
-    "log_freq", "state_minutes", "checkpoint_freq", "keep_state", "parallel_eval",
-)
-
-
-def open_run(args) -> tuple:
-    """The run folder, and the saved state when `--run-name`
-    names a folder holding a `state.pt` (else None)."""
-    if args.run_name is None:
-        return make_run_folder(args.env_id, args.exp_name, args.seed), None
-    path = f"runs/{args.run_name}/state.pt"
-    if not os.path.exists(path):
-        if os.path.exists(f"runs/{args.run_name}"):
-            raise ValueError(
-                f"--run-name {args.run_name}: runs/{args.run_name} holds no state.pt to resume "
-                "(the run finished, or stopped before its first state); "
-                "choose another name or move the folder"
-            )
-        os.makedirs(f"runs/{args.run_name}")
-        return args.run_name, None
-    try:
-        # our own file: not only tensors
-        state = torch.load(path, map_location="cpu", mmap=True, weights_only=False)
-    except Exception as e:  # not a state file, or a truncated one
-        raise ValueError(
-            f"--run-name {args.run_name}: cannot read {path} ({type(e).__name__}: {e})"
-        ) from None
-    if "loop" in state:  # an older state format: the loop's variables as tuples, not as `Loop`
-        raise ValueError(
-            f"--run-name {args.run_name}: {path} was written by an older version of this script; "
-            "resume it with that version (git checkout 88b95d9)"
-        )
-    # a flag added since: its default
-    saved = {**{field.name: field.default for field in fields(args)}, **state["args"]}
-    changed = [
-        f"--{name.replace('_', '-')} {saved[name]} (now {value})"
-        for name, value in vars(args).items()
-        if name not in RESUMABLE_FLAGS and saved[name] != value
-    ]
-    if changed:
-        resumable = ", --".join(flag.replace("_", "-") for flag in RESUMABLE_FLAGS)
-        raise ValueError(
-            f"--run-name {args.run_name}: the saved run differs in {', '.join(changed)}; "
-            f"a resume may change only --{resumable}"
-        )
-    return args.run_name, state
-
-
-def save_atomically(state: dict, path: str):
-    """Write a temporary file, flush it to disk, then rename
-    it: a kill during the write leaves the last state."""
-    with open(f"{path}.tmp", "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(f"{path}.tmp", path)
-
-
-# a dataclass's fields of these types are saved as they are
-PLAIN = (int, float, list, dict, deque, type(None))
-
-
-def state_of(obj):
-    """What `state.pt` keeps of an object.
-
-    That is a tensor itself, a sparse optimizer's inner state with its masks and counters,
-    `obj.state_dict()`, a dataclass field by field, a buffer's stored rows (`stored_rows`),
-    or for another plain object (episode store, statistics) its tensors and numbers."""
-    if isinstance(obj, torch.Tensor):
-        return obj.detach()
-    if hasattr(obj, "masks"):  # the weights are saved with their networks
-        counters = {name: value for name, value in vars(obj).items() if isinstance(value, int)}
-        return {"optimizer": obj.optimizer.state_dict(), "masks": obj.masks, "counters": counters}
-    if hasattr(obj, "state_dict"):
-        return obj.state_dict()
-    if dataclasses.is_dataclass(obj):
-        return {name: value if isinstance(value, PLAIN) else state_of(value)
-                for name, value in vars(obj).items()}
-    if hasattr(obj, "size"):
-        return stored_rows(obj)
-    return {
-        name: value
-        for name, value in vars(obj).items()
-        if isinstance(value, (torch.Tensor, np.ndarray, int, float))
-    }
-
-
-def stored_rows(buffer) -> dict:
-    """A buffer's numbers and the first `size` rows of its
-    tensors: a slice alone would save the whole preallocation.
-
-    A replay buffer's `next_obs` is kept only where it is not the next row's `obs`,
-    that is at episode ends and in the newest row. The comparison is bitwise."""
-    n = buffer.size
-    state = {name: value for name, value in vars(buffer).items() if isinstance(value, (int, float))}
-    state["rows"] = {
-        name: x[:n] if n == len(x) else x[:n].clone()
-        for name, x in vars(buffer).items()
-        if isinstance(x, torch.Tensor) and name != "next_obs"
-    }
-    if hasattr(buffer, "next_obs"):
-        own = torch.ones(n, dtype=torch.bool, device=buffer.obs.device)
-        next_bits = buffer.next_obs[: n - 1].view(torch.int32)
-        own[:-1] = (next_bits != buffer.obs[1:n].view(torch.int32)).any(1)
-        state["own_next_obs"] = own
-        state["next_obs"] = buffer.next_obs[:n][own]
-    return state
-
-
-def load_stored_rows_(buffer, state: dict):
-    """Restore what `stored_rows` saved, in place."""
-    for name, rows in state["rows"].items():
-        full = getattr(buffer, name)
-        # a buffer that allocates its rows at the first add (SURF's segments)
-        if full.shape[1:] != rows.shape[1:]:
-            full = full.new_zeros((len(full), *rows.shape[1:]))
-            setattr(buffer, name, full)
-        full[: len(rows)] = rows
-    if "next_obs" in state:
-        n, own = state["size"], state["own_next_obs"].to(buffer.obs.device)
-        buffer.next_obs[: n - 1] = buffer.obs[1:n]
-        buffer.next_obs[:n][own] = state["next_obs"].to(buffer.obs.device)
-    for name, value in state.items():
-        if isinstance(value, (int, float)):
-            setattr(buffer, name, value)
-
-
-@torch.no_grad()
-def load_state_(obj, state):
-    """Restore what `state_of` saved, in place (tensors are copied onto the object's device)."""
-    if isinstance(obj, torch.Tensor):
-        obj.copy_(state)
-    elif hasattr(obj, "masks"):
-        obj.optimizer.load_state_dict(state["optimizer"])
-        for name, mask in obj.masks.items():
-            mask.copy_(state["masks"][name])
-        vars(obj).update(state["counters"])
-    elif hasattr(obj, "load_state_dict"):
-        obj.load_state_dict(state)
-    # what `state_of` saved as it was is set, the rest restored in place
-    elif dataclasses.is_dataclass(obj):
-        for name, value in state.items():
-            if isinstance(getattr(obj, name), PLAIN):
-                setattr(obj, name, value)
-            else:
-                load_state_(getattr(obj, name), value)
-    elif hasattr(obj, "size"):
-        load_stored_rows_(obj, state)
-    else:
-        for name, value in state.items():
-            if isinstance(value, torch.Tensor):
-                getattr(obj, name).copy_(value)
-            else:
-                setattr(obj, name, value)
-
-
-def rng_states(device: torch.device) -> dict:
-    """The global generators: python's, numpy's, torch's
-    (and the GPU's on one); the envs keep their own."""
-    cuda = torch.cuda.get_rng_state(device) if device.type == "cuda" else None
-    return {
-        "python": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": torch.get_rng_state(),
-        "cuda": cuda,
-    }
-
-
-def set_rng_states(states: dict, device: torch.device):
-    random.setstate(states["python"])
-    np.random.set_state(states["numpy"])
-    torch.set_rng_state(states["torch"])
-    if states["cuda"] is not None and device.type == "cuda":
-        torch.cuda.set_rng_state(states["cuda"], device)
-
-
-
-def open_writer(args, run_name: str, resume: Optional[dict]) -> SummaryWriter:
+def open_writer(args, run_name: str, resume_step: Optional[int]) -> SummaryWriter:
     """The run's TensorBoard writer (and W&B with `--track`). A resumed run hides the
     points the interrupted one logged after its state (TensorBoard's purge_step)."""
     if args.track:
         import wandb
 
-        wandb.init(
-            project=args.wandb_project_name,
-            entity=args.wandb_entity,
-            sync_tensorboard=True,
-            config=vars(args),
-            name=run_name,
-            id=run_name,
-            resume="allow",
-            monitor_gym=True,
-            save_code=True,
-        )
-    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume["global_step"] if resume else None)
-    if resume is None:
+        wandb.init(project=args.wandb_project_name, entity=args.wandb_entity,
+                   sync_tensorboard=True, config=vars(args), name=run_name, id=run_name,
+                   resume="allow", monitor_gym=True, save_code=True)
+    writer = SummaryWriter(f"runs/{run_name}", purge_step=resume_step)
+    if resume_step is None:
         table = "\n".join([f"|{key}|{value}|" for key, value in vars(args).items()])
         writer.add_text("hyperparameters", f"|param|value|\n|-|-|\n{table}")
     return writer
-
-
-def catch_stop_signals() -> list:
-    """SIGTERM and SIGUSR2 (SLURM, submitit: preemption, time limit) are noted in the
-    returned list; the loop then saves the state at the end of its step and exits."""
-    stop_signals = []
-    for signum in (signal.SIGTERM, signal.SIGUSR2):
-        signal.signal(
-            signum, lambda signum, frame: stop_signals.append(signal.Signals(signum).name)
-        )
-    return stop_signals
-
-
-class Stopped(Exception):
-    """SIGTERM or SIGUSR2: the state is saved; the run exits
-    with exit code 1 and one line saying how to resume."""
 
 
 class NonFinite(Exception):
@@ -775,16 +518,19 @@ def check_finite(values: dict, step: int):
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
 
 
-def log_evaluation(writer: SummaryWriter, global_step: int, eval_return: float, eval_seconds: float,
-                   sps: int, shares: dict, loop, progress: Progress, counts: str = ""):
-    """An evaluation's tags (kept in `loop.last_eval`, logged again after a resume's purge), its
-    console line (`counts`: the PbRL scripts' feedback) and the NaN stop."""
-    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | shares
+def log_evaluation(writer: SummaryWriter, global_step: int, actor: Actor, envs: list,
+                   device: torch.device, start_time: float, loop: Loop, args: Args, more: dict):
+    """Evaluate the policy, log its tags and `more` (kept in `loop.last_eval`: a resume logs them
+    again), print a console line, and stop on a non-finite return. `start_time`: the training
+    clock's start, so that SPS counts training time only."""
+    started = time.time()
+    eval_return = float(evaluate(actor, envs, device).mean())
+    sps = int((global_step + 1) / (time.time() - start_time))
+    loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | more
     for tag, value in loop.last_eval.items():
         writer.add_scalar(tag, value, global_step + 1)
     print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "
-          f"eval_seconds={eval_seconds:.2f}{counts}", flush=True)
-    progress.eval_return = eval_return
+          f"eval_seconds={time.time() - started:.2f}", flush=True)
     check_finite({"eval/episodic_return": eval_return}, global_step)
 
 
@@ -797,112 +543,19 @@ def log_losses(writer: SummaryWriter, global_step: int, losses: dict):
     check_finite(logged, global_step)
 
 
-def save_state(path: str, args, global_step: int, elapsed: float, obs: torch.Tensor, saved: dict,
-               device: torch.device, envs: list, writer: SummaryWriter):
-    """Write `state.pt`: everything the loop needs to continue exactly after step `global_step`:
-    the `saved` objects, the generators, the envs' generators and the observation to act on."""
-    started = time.time()
-    # the points up to this step are on disk before a state that a resume purges back to
-    writer.flush()
-    save_atomically({
-        "args": vars(args), "global_step": global_step + 1, "elapsed": elapsed, "obs": obs,
-        "objects": {name: state_of(obj) for name, obj in saved.items()}, "rng": rng_states(device),
-        "envs": [e.rng_state() for e in envs],
-    }, path)
-    print(f"state saved after step {global_step + 1}: {os.path.getsize(path) / 1e9:.2f} GB in "
-          f"{time.time() - started:.1f} s", flush=True)
-
-
-def state_due(global_step: int, args, last_state: float) -> bool:
-    """Whether `state.pt` is written after this step: `state_minutes` after the
-    last one (`last_state`, from `time.monotonic`), or every `checkpoint_freq`
-    steps if set; at the last step only with `keep_state`."""
-    if global_step + 1 == args.total_timesteps:
-        return args.keep_state
-    if args.checkpoint_freq is not None:
-        return (global_step + 1) % args.checkpoint_freq == 0
-    return time.monotonic() - last_state >= 60 * args.state_minutes
-
-
-def restore_run(
-    resume: Optional[dict], saved: dict, envs: list, args, device: torch.device,
-    writer: SummaryWriter, progress: Progress, state_path: str,
-) -> tuple:
-    """Start, or continue from the saved state: restore the `saved` objects, replay the
-    running episode on `envs[0]` to where the saved run was, then restore the generators.
-    Returns (observation, first step, seconds trained)."""
-    loop = saved["loop"]
-    if resume is not None:
-        for name, obj in saved.items():
-            load_state_(obj, resume["objects"][name])
-        loop.losses = {name: value.to(device) for name, value in loop.losses.items()}
-    obs = ene.replay_episode(envs[0], args.seed, loop.episode_start, loop.episode_actions)
-    if resume is None:
-        return obs, 0, 0.0
-    set_rng_states(resume["rng"], device)
-    for e, state in zip(envs, resume["envs"]):
-        e.set_rng_state(state)
-    if not np.array_equal(obs, resume["obs"].cpu().numpy()):
-        print(
-            f"{args.exp_name}: warning: the replayed episode differs from the saved one "
-            "(another MuJoCo?); the run continues, not bitwise as uninterrupted",
-            flush=True,
-        )
-    start_step = resume["global_step"]
-    progress.step = resume["global_step"]
-    progress.time = resume["elapsed"]
-    # the purge hid the step's evaluation
-    if start_step % args.eval_freq == 0 or start_step == args.total_timesteps:
-        for tag, value in loop.last_eval.items():
-            writer.add_scalar(tag, value, start_step)
-    progress.eval_return = loop.last_eval.get("eval/episodic_return")
-    print(f"resuming {state_path} at step {start_step}", flush=True)
-    return obs, start_step, resume["elapsed"]
-
-def input_layers(agent) -> dict:
-    """The input layers of the actor and of both critics, by the names the logs use."""
-    return {name: getattr(agent, name).net[0].weight for name in ("actor", "qf1", "qf2")}
-
-
-@torch.no_grad()
-def relevant_weight_frac(weight: torch.Tensor, obs_dim_real: int, obs_dim: int) -> tuple:
-    """The share of an input layer's absolute weight on relevant columns, and its chance level.
-
-    The layer is (out, in) on [real obs | noise | action]. Relevant columns are the real features
-    and the actions, as in `relevant_active_frac`. Chance is the relevant columns' share of all
-    columns. A zero weight adds nothing, so a sparse layer counts its active weights only."""
-    column = torch.arange(weight.shape[-1], device=weight.device)
-    relevant = (column < obs_dim_real) | (column >= obs_dim)
-    magnitude = weight.abs().sum(0)
-    return magnitude[relevant].sum() / magnitude.sum(), relevant.float().mean()
-
-
-def weight_shares(layers: dict, obs_dim_real: int, obs_dim: int) -> dict:
-    """The tags `features/{net}/relevant_weight_frac` and
-    `features/{net}/chance` of each layer, as floats.
-
-    It reads the weights only, so a run's numbers are the same with or without it.
-    One host sync per call."""
-    values = {}
-    for name, weight in layers.items():
-        frac, chance = relevant_weight_frac(weight, obs_dim_real, obs_dim)
-        values[f"features/{name}/relevant_weight_frac"] = frac
-        values[f"features/{name}/chance"] = chance
-    return dict(zip(values, torch.stack(list(values.values())).tolist()))
-
-
 if __name__ == "__main__":
     args = tyro.cli(Args)
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
                            args.noise_histograms, args.episode_length)
-        run_name, resume = open_run(args)  # resume: the saved state of an interrupted run, or None
+        # the run harness, for its flags: resume, the query log, diagnostics, a person's labels
+        run = harness("run").Run(args, env, make_run_folder) if uses_run(args) else None
+        run_name = run.name if run else make_run_folder(args)
     except ValueError as e:
         raise SystemExit(f"{args.exp_name}: error: {e}")
-    run_folder, state_path = f"runs/{run_name}", f"runs/{run_name}/state.pt"
-    checkpoint_path = f"{run_folder}/{args.exp_name}.cleanrl_model"
-    video_folder = f"videos/{run_name}" + (f"/resumed-at-{resume['global_step']}" if resume else "")
+    checkpoint_path = f"runs/{run_name}/{args.exp_name}.cleanrl_model"
+    video_folder = run.video_folder if run else f"videos/{run_name}"
     eval_envs = [
         (ene.EnvProcess if args.parallel_eval else ene.make_env)(
             args.env_id, args.seed + 1000 * (i + 1), args.noise, args.noise_type,
@@ -913,7 +566,7 @@ if __name__ == "__main__":
     ]
     for i, eval_env in enumerate(eval_envs):
         eval_env.reset(seed=args.seed + 1000 * (i + 1))
-    writer = open_writer(args, run_name, resume)
+    writer = open_writer(args, run_name, run and run.start_step)
 
     # TRY NOT TO MODIFY: seeding
     random.seed(args.seed)
@@ -943,22 +596,20 @@ if __name__ == "__main__":
     agent = make_agent(obs_dim, act_dim, args, device)
     rb = ReplayBuffer(args.buffer_size, obs_dim, act_dim, device, noise)
     loop = Loop()
-    # everything the loop changes, by name: `state.pt` saves and restores exactly these
+    # everything the loop changes, by name (what `--resumable` saves and restores)
     saved = dict(agent=agent, rb=rb, loop=loop)
 
-    # TRY NOT TO MODIFY: start the game, or continue it from the saved state
-    stop_signals = catch_stop_signals()
-    progress = Progress(args.total_timesteps)
-    obs, start_step, elapsed = restore_run(resume, saved, [env, *eval_envs], args, device, writer,
-                                           progress, state_path)
-    del resume
+    # TRY NOT TO MODIFY: start the game (the harness may continue it from its saved state)
+    if run:
+        obs, start_step, elapsed = run.start(saved, [env, *eval_envs], device, writer)
+    else:
+        (obs, _), start_step, elapsed = env.reset(seed=args.seed), 0, 0.0
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
-    last_state = time.monotonic()  # the clock of `--state-minutes`
     try:
         for global_step in range(start_step, args.total_timesteps):
-            phase = "random" if global_step < args.learning_starts else "SAC"
-            progress.update(global_step, phase, time.time() - start_time)
+            if run:
+                run.step_starts(global_step, start_time)
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()
@@ -994,35 +645,24 @@ if __name__ == "__main__":
                     log_losses(writer, global_step, loop.losses)
 
             if (global_step + 1) % args.eval_freq == 0 or global_step + 1 == args.total_timesteps:
-                eval_start = time.time()
-                eval_return = float(evaluate(agent.actor, eval_envs, device).mean())
-                eval_seconds = time.time() - eval_start
-                sps = int((global_step + 1) / (time.time() - start_time))
-                shares = weight_shares(input_layers(agent), obs_dim_real, obs_dim)
-                log_evaluation(writer, global_step, eval_return, eval_seconds, sps, shares, loop,
-                               progress)
+                log_evaluation(writer, global_step, agent.actor, eval_envs, device,
+                               start_time + (run.waited if run else 0.0), loop, args,
+                               run.eval_tags() if run else {})
                 if args.save_model:
                     save_checkpoint(checkpoint_path, args, global_step, saved, dims)
 
-            if stop_signals or state_due(global_step, args, last_state):
-                save_state(state_path, args, global_step, time.time() - start_time, obs, saved,
-                           device, [env, *eval_envs], writer)
-                last_state = time.monotonic()
-                if stop_signals:
-                    raise Stopped(f"stopped by {stop_signals[0]} after step {global_step + 1}; "
-                                  f"state saved in {state_path}: run the same command with "
-                                  f"--run-name {run_name} to resume")
-    except (Stopped, NonFinite) as e:
-        if isinstance(e, NonFinite):  # the checkpoint is written first, for debugging
-            save_checkpoint(checkpoint_path, args, global_step, saved, dims)
-            e = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
+            if run:  # `state.pt` when due, and at a stop signal
+                run.step_ends(global_step, obs, start_time)
+    except NonFinite as e:  # the checkpoint is written first, for debugging
+        save_checkpoint(checkpoint_path, args, global_step, saved, dims)
+        message = f"error: {e}; checkpoint for debugging: {checkpoint_path}"
+        if run:
+            raise run.stop(message)
         writer.close()
-        raise SystemExit(f"{args.exp_name}: {e}")
+        raise SystemExit(f"{args.exp_name}: {message}")
 
     for each in (env, *eval_envs):
         each.close()
     writer.close()
-    # last: a kill before this leaves a state to resume
-    if not args.keep_state and os.path.exists(state_path):
-        # the run is complete: what it leaves is the event file and the checkpoint
-        os.remove(state_path)
+    if run:  # last: a kill before this leaves a state to resume
+        run.finish()

@@ -12,13 +12,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-
-def write_npz(path: str, **arrays):
-    """`np.savez` to a temp file, then rename: no reader sees half a file; a kill keeps the last."""
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(f"{path}.tmp", "wb") as f:
-        np.savez(f, **arrays)
-    os.replace(f"{path}.tmp", path)
+from r2n_harness.query_log import write_npz
 
 
 class ExternalTeacher:

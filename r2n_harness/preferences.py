@@ -57,9 +57,10 @@ def add_preferences(preferences: dict, queries, prefs, loop, run_folder: str,
     """An earlier run's labels (`--preferences`): the first pairs of the query log and of the
     labelled pairs, counted in the budget."""
     inputs = np.concatenate([preferences["obs"], preferences["actions"]], -1)
-    queries.add(inputs, preferences["true_rewards"], preferences["physics"], preferences["labels"],
-                -1, -1)
-    queries.save_round(f"{run_folder}/preferences", env_id, obs_dim, -1)
+    if queries is not None:  # `--query-log`
+        queries.add(inputs, preferences["true_rewards"], preferences["physics"],
+                    preferences["labels"], -1, -1)
+        queries.save_round(f"{run_folder}/preferences", env_id, obs_dim, -1)
     kept = ~np.isnan(preferences["labels"])
     prefs.add(torch.as_tensor(inputs[kept], device=device),
               torch.as_tensor(preferences["labels"][kept], device=device))

@@ -2,6 +2,7 @@
 float tolerance in all 12 scripts and compiles each step once; a run records the flags and a resume that flips one
 is refused; `--tf32` and `--cuda-graph` without a GPU fail with one line. (Capture: tests/test_cuda_graph.py, on a GPU.)"""
 import copy
+import dataclasses
 import importlib
 import os
 import shutil
@@ -55,7 +56,7 @@ def test_compiled_steps_match_eager_within_tolerance(script, monkeypatch):
     module = importlib.import_module(script[:-3])
     obs_dim, act_dim = 6, 2
     overrides = dict(hidden_dim=32, batch_size=16)
-    names = {field.name for field in module.fields(module.Args)}
+    names = {field.name for field in dataclasses.fields(module.Args)}
     overrides.update({name: 2 for name in ("agent_topology_period", "topology_period") if name in names})
     args = module.Args(**overrides)
     torch.manual_seed(0)
@@ -91,12 +92,12 @@ COMPILED_RUN = ["--unsup-steps", "10", "--total-timesteps", "260", "--eval-freq"
 
 @needs_compiler
 def test_a_compiled_run_records_its_flag_and_a_resume_may_not_flip_it(tmp_path):
-    result = run_script("pebble.py", TINY + COMPILED_RUN + ["--compile", "--run-name", "c", "--keep-state"], tmp_path)
+    result = run_script("pebble.py", TINY + COMPILED_RUN + ["--compile", "--run-name", "c", "--resumable", "--keep-state"], tmp_path)
     assert result.returncode == 0
     values = scalars(str(tmp_path / "runs" / "c"))
     assert all(torch.isfinite(torch.tensor(values["eval/episodic_return"])))
     assert values["pbrl/total_feedback"] == [5] and len(values["losses/qf1_loss"]) > 0
-    refused = run_script("pebble.py", TINY + COMPILED_RUN + ["--run-name", "c"], tmp_path, check=False)
+    refused = run_script("pebble.py", TINY + COMPILED_RUN + ["--run-name", "c", "--resumable"], tmp_path, check=False)
     assert refused.returncode == 1 and "the saved run differs in --compile True (now False)" in refused.stderr
 
 

@@ -19,9 +19,14 @@ from test_resume import points
 from test_scripts import ROOT
 
 sys.path.insert(0, ROOT)
-import pebble  # noqa: E402
 from r2n_harness.external_teacher import ExternalTeacher, check_labels_unchanged  # noqa: E402
 from r2n_harness.preferences import read_preferences  # noqa: E402
+from r2n_harness.query_log import QueryLog  # noqa: E402
+from r2n_harness.run import Progress  # noqa: E402
+
+
+class Stopped(Exception):
+    """What a run's `Run.stop` gives the teacher to raise at a stop signal."""
 
 
 def status(run):
@@ -48,7 +53,7 @@ def test_a_stop_ends_the_nap_at_once(tmp_path):
     short nap of the stop signal, not at the end of the poll."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
     stops = []
-    teacher = ExternalTeacher(str(tmp_path), args, stops, pebble.Stopped, poll_seconds=60.0)
+    teacher = ExternalTeacher(str(tmp_path), args, stops, Stopped, poll_seconds=60.0)
     threading.Timer(0.2, stops.append, [signal.SIGTERM]).start()
     started = time.monotonic()
     teacher.nap()
@@ -140,8 +145,8 @@ def test_teacher_json_says_the_step_while_training(tmp_path):
     """While the run trains, `teacher.json` says its current step: rewritten every 2 s of training at most (the
     page polls every 2 s), not at every step; waiting, it is the wait's."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=1500)
-    teacher = ExternalTeacher(str(tmp_path), args, [], pebble.Stopped)
-    progress = pebble.Progress(total_steps=1500, budget=10, on_step=teacher.training)  # as the main loop wires it
+    teacher = ExternalTeacher(str(tmp_path), args, [], Stopped)
+    progress = Progress(total_steps=1500, budget=10, on_step=teacher.training)  # as the main loop wires it
     progress.update(0, "random", seconds=0.0, feedback=0)
     assert not (tmp_path / "teacher.json").exists()  # before the first round, the page reads the run's files
     teacher.tell("training", 500, asked=5, labelled=4)
@@ -159,7 +164,7 @@ def test_teacher_json_says_the_step_while_training(tmp_path):
 
 
 def test_the_progress_rate_counts_training_time_only(capsys):
-    progress = pebble.Progress(total_steps=10_000, interval=30.0)
+    progress = Progress(total_steps=10_000, interval=30.0)
     progress.update(0, "PbRL", seconds=100.0)
     progress.update(600, "PbRL", seconds=130.0)  # 600 steps in 30 s of training, however long a person took
     line = capsys.readouterr().out.strip().splitlines()[-1]
@@ -169,7 +174,7 @@ def test_the_progress_rate_counts_training_time_only(capsys):
 def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resumes():
     """A state written before the SHA-256 were kept has none for its rounds: the next rounds pad, and the resume's
     check has nothing to compare for the old ones."""
-    queries = pebble.QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
+    queries = QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
     rows = dict(inputs=np.zeros((2, 2, 2, 3)), true_rewards=np.zeros((2, 2, 2)), physics=np.zeros((2, 2, 2, 1)),
                 labels=np.array([1.0, np.nan]))
     queries.add(**rows, round_index=-1, step=-1)  # `--preferences`: no round, no file
@@ -186,7 +191,7 @@ def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resum
 def test_a_round_writes_its_own_queries_only_and_the_folder_reads_as_the_whole_log(tmp_path):
     """`preferences/` gets one file per round; a later round leaves the earlier files as they are, and
     `read_preferences` joins them (seeded first) into the arrays of the whole query log."""
-    queries = pebble.QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
+    queries = QueryLog(segment_steps=2, input_dim=3, physics_dim=1)
     rng = np.random.default_rng(0)
     folder = str(tmp_path / "preferences")
 
@@ -225,7 +230,7 @@ def test_a_folder_in_place_of_the_labels_file_is_one_line_and_the_wait_goes_on(t
     import torch
 
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
-    teacher = ExternalTeacher(str(tmp_path), args, [], pebble.Stopped, poll_seconds=0.02)
+    teacher = ExternalTeacher(str(tmp_path), args, [], Stopped, poll_seconds=0.02)
     folder = tmp_path / "labels" / "0.json"
     folder.mkdir(parents=True)
 
@@ -260,7 +265,7 @@ def asked(tmp_path, write, seconds=60):
 
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
     stops = []
-    teacher = ExternalTeacher(str(tmp_path), args, stops, pebble.Stopped, poll_seconds=0.02)
+    teacher = ExternalTeacher(str(tmp_path), args, stops, Stopped, poll_seconds=0.02)
     timer = threading.Timer(seconds, stops.append, [signal.SIGTERM])
     timer.start()
     helper = threading.Thread(target=write, args=(tmp_path,))

@@ -45,7 +45,9 @@ def args_of(script, env_id):
 @pytest.mark.parametrize("env_id", list(TASKS))
 @pytest.mark.parametrize("script", PBRL + ORACLES)
 def test_smoke_reaches_every_phase(script, env_id, tmp_path):
-    result = run_script(script, args_of(script, env_id) + ["--run-name", "smoke", "--exp-name", "smoke"], tmp_path)
+    harness = ["--resumable", "--diagnostics"]  # the features' chance and the progress lines
+    result = run_script(script, args_of(script, env_id) + harness + ["--run-name", "smoke", "--exp-name", "smoke"],
+                        tmp_path)
     values = scalars(str(tmp_path / "runs" / "smoke"))
     expected = SAC_TAGS + (PBRL_TAGS if script in PBRL else [])
     missing = [tag for tag in expected if tag not in values]
@@ -70,7 +72,7 @@ def test_smoke_reaches_every_phase(script, env_id, tmp_path):
 
 # States every 50 steps from 50 on, through the random steps, pre-training, the feedback round at 200 and the SAC
 # updates on the learned reward; evaluations at 200 and 400.
-RESUME = ["--checkpoint-freq", "50", "--total-timesteps", "400", "--eval-freq", "200"]
+RESUME = ["--checkpoint-freq", "50", "--total-timesteps", "400", "--eval-freq", "200", "--resumable"]
 
 
 def test_killed_at_a_random_moment_resumes_exactly_on_a_gymnasium_task(tmp_path, monkeypatch):

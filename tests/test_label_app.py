@@ -734,3 +734,76 @@ def test_label_app_binds_the_answers_to_the_queries_shown(tmp_path):
         assert status == 200 and page_answers(run, 0) == [1, 0]
         [aside] = [name for name in os.listdir(run / "labels") if name.startswith("0.json.rejected-")]
         assert json.loads((run / "labels" / aside).read_text()) == {"queries": shown, "answers": [1, 1]}
+
+
+@needs_chromium
+def test_label_app_no_modifier_combination_answers_on_a_focused_button_in_a_headless_browser(tmp_path):
+    """Space and Enter press a focused button only unmodified: Ctrl, Alt, Meta or Shift with either answers nothing
+    (the browser presses a button on Space's keyup, which the keydown handler alone does not stop)."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    with serve(run) as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2" and answers_enabled(d))
+        space = {"key": " ", "code": "Space", "windowsVirtualKeyCode": 32, "nativeVirtualKeyCode": 32, "text": " "}
+        enter = {"key": "Enter", "code": "Enter", "windowsVirtualKeyCode": 13, "nativeVirtualKeyCode": 13, "text": "\r"}
+
+        def press(key, modifiers):  # CDP's bits: Alt 1, Ctrl 2, Meta 4, Shift 8
+            driver.execute_script("document.getElementById('answer-right').focus()")
+            driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyDown", "modifiers": modifiers, **key})
+            driver.execute_cdp_cmd("Input.dispatchKeyEvent", {"type": "keyUp", "modifiers": modifiers, **key})
+
+        for key in (space, enter):
+            for modifiers in (1, 2, 4, 8):
+                press(key, modifiers)
+                time.sleep(0.3)
+                assert text() == "round 0: query 1 of 2", (key["key"], modifiers)
+        press(space, 0)  # unmodified: the focused button answers
+        WebDriverWait(driver, 30).until(lambda d: text() == "round 0: query 2 of 2")
+        WebDriverWait(driver, 60).until(answers_enabled)
+        press(enter, 0)
+        WebDriverWait(driver, 30).until(lambda d: d.find_element("id", "submit").is_displayed())
+        assert driver.execute_script("return answers") == [1, 1]
+
+
+@needs_chromium
+def test_label_app_page_recovers_by_itself_when_the_app_restarts_mid_fetch_in_a_headless_browser(tmp_path):
+    """The app stops while the page fetches a query's clips and starts again on its port: the page tries the clips
+    again, after a growing wait that its notice names ("did not load (try 3): the app does not answer, ...; trying
+    again in 2 s"), and takes answers without a reload."""
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (3,))
+    port = free_port()
+
+    def app(clip_delay):
+        process = subprocess.Popen([sys.executable, LABEL_APP, str(run), "--port", str(port)], stdout=subprocess.PIPE,
+                                   stderr=subprocess.STDOUT, text=True,
+                                   env=dict(os.environ, OMP_NUM_THREADS="1", R2N_LABEL_APP_CLIP_DELAY=clip_delay))
+        assert process.stdout.readline().startswith("labelling"), "the app did not start"
+        return process
+
+    first = app("3")  # each clip takes 3 s: the app is stopped while the page waits for query 1's
+    second = None
+    try:
+        with contextlib.closing(chrome()) as driver:
+            text = open_page(driver, f"127.0.0.1:{port}")
+            WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 3")
+            first.terminate()
+            first.communicate(timeout=30)
+            WebDriverWait(driver, 30).until(lambda d: "did not load" in text("message"))
+            time.sleep(3)  # the page keeps trying while the app is away
+            assert not answers_enabled(driver)
+            second = app("0")
+            WebDriverWait(driver, 30).until(answers_enabled)  # without a reload
+            assert "the clips of query 1 loaded on try" in text("message")
+            answer_round(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT, "="])
+            WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        assert page_answers(run, 0) == [0, 1, 0.5]
+    finally:
+        for process in (first, second):
+            if process is not None and process.poll() is None:
+                process.terminate()
+                process.communicate(timeout=30)

@@ -60,11 +60,12 @@ def test_label_app_keeps_the_clips_last_shown_within_a_bound(tmp_path, monkeypat
     run = make_run(tmp_path, (4,))
     drawn = []
 
-    def render_states(env_id, physics):  # frames of noise, of one size, without MuJoCo
+    def render_states(env_id, states, physics=None):  # frames of noise, of one size, without MuJoCo
         drawn.append(len(drawn))
         return np.random.default_rng(len(drawn)).integers(0, 256, (3, 24, 32, 3), dtype=np.uint8)
 
     monkeypatch.setattr(label_app.ene, "render_states", render_states)
+    monkeypatch.setattr(label_app.ene, "dmc_physics", lambda env_id: None)
     size = len(label_app.Clips(str(run), 25, 10 ** 9).gif(0, 0, 0))
     clips = label_app.Clips(str(run), 25, int(2.5 * size))  # room for two clips
     drawn.clear()
@@ -140,14 +141,13 @@ def test_label_app_round_numbers_are_canonical(tmp_path):
 
 def test_label_app_labels_files_are_group_readable_as_the_run_files(tmp_path):
     """A labels file gets the mode every file of the run gets (0666 less the umask), not a temporary file's 0600."""
-    sys.path.insert(0, ROOT)
-    import pebble
+    from r2n_harness.query_log import write_npz
 
     run = make_run(tmp_path, (3,))
     umask = os.umask(0o022)
     try:
         label_app.write_labels(str(run), 0, b"[0, 1, 0.5]")
-        pebble.write_npz(str(run / "preferences" / "0.npz"), labels=np.zeros(3))
+        write_npz(str(run / "preferences" / "0.npz"), labels=np.zeros(3))
     finally:
         os.umask(umask)
     modes = [stat.S_IMODE(os.stat(path).st_mode) for path in (run / "labels" / "0.json", run / "preferences" / "0.npz")]

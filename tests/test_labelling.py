@@ -115,7 +115,7 @@ def test_the_run_takes_exactly_the_labels_the_page_takes():
 def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     first = tmp_path / "first"
     first.mkdir()
-    run_script("pebble.py", TINY + ["--run-name", "a"], first)
+    run_script("pebble.py", TINY + ["--run-name", "a", "--query-log"], first)
     folder = first / "runs" / "a" / "preferences"
     assert sorted(os.listdir(folder)) == ["0.npz", "1.npz", "2.npz", "3.npz"]  # a file per round, each written once
     saved = read_preferences(str(folder))
@@ -135,7 +135,8 @@ def test_preferences_npz_of_a_simulated_run_and_its_reuse(tmp_path):
     second = tmp_path / "second"
     second.mkdir()
     path = str(folder)
-    run_script("pebble.py", TINY + ["--run-name", "b", "--preferences", path, "--max-feedback", "30"], second)
+    run_script("pebble.py", TINY + ["--run-name", "b", "--preferences", path, "--max-feedback", "30", "--query-log"],
+               second)
     values = scalars(str(second / "runs" / "b"))
     assert values["pbrl/total_feedback"] == [25, 30]
     data = read_preferences(str(second / "runs" / "b" / "preferences"))

@@ -1,15 +1,14 @@
-"""The layout of issue 18: every script reads algorithm first, and its run plumbing is one block, the same everywhere.
+"""The layout of issues 18 and 68: every script reads algorithm first, and what it needs to run is one short block, the
+same everywhere; the run harness is the package `r2n_harness`, which only its flags import.
 
-The `# RUN PLUMBING` block (from that comment line to `if __name__ == "__main__":`) is byte-identical in the ten PbRL
-scripts; sac.py and anf_sac.py keep a subset of its top-level definitions, each byte-identical and in the same order.
-A fix to the plumbing is made in pebble.py and copied; this test fails until every copy is the same.
+The `# RUN:` block (from that comment line to `if __name__ == "__main__":`) is byte-identical in the ten PbRL scripts;
+sac.py and anf_sac.py keep a subset of its top-level definitions, in the same order, each byte-identical but
+`log_evaluation` (no feedback counts). A fix to the block is made in pebble.py and copied; this test fails until every
+copy is the same.
 """
 import ast
 import os
 import re
-import shutil
-import subprocess
-import sys
 
 import pytest
 
@@ -24,12 +23,15 @@ def lines(script):
         return f.read().split("\n")
 
 
+RUN = "# RUN:"  # the block's first line starts so
+
+
 def plumbing(script):
-    """The script's `# RUN PLUMBING` block, as text."""
+    """The script's `# RUN:` block, as text."""
     text = lines(script)
-    starts = [i for i, line in enumerate(text) if line.startswith("# RUN PLUMBING")]
+    starts = [i for i, line in enumerate(text) if line.startswith(RUN)]
     main = [i for i, line in enumerate(text) if line.startswith("if __name__")]
-    assert len(starts) == 1 and len(main) == 1 and starts[0] < main[0], f"{script}: one RUN PLUMBING block before main"
+    assert len(starts) == 1 and len(main) == 1 and starts[0] < main[0], f"{script}: one RUN block before main"
     return "\n".join(text[starts[0] : main[0]])
 
 
@@ -45,7 +47,7 @@ def definitions(source):
 
 @pytest.mark.parametrize("script", PBRL[1:])
 def test_pbrl_plumbing_is_pebbles_byte_for_byte(script):
-    assert plumbing(script) == plumbing("pebble.py"), f"{script}'s RUN PLUMBING block differs from pebble.py's"
+    assert plumbing(script) == plumbing("pebble.py"), f"{script}'s RUN block differs from pebble.py's"
 
 
 @pytest.mark.parametrize("script", ORACLES)
@@ -53,7 +55,7 @@ def test_oracle_plumbing_is_a_subset_of_pebbles(script):
     reference = definitions(plumbing("pebble.py"))
     order = [name for name, _ in reference]
     own = definitions(plumbing(script))
-    changed = [name for name, source in own if (name, source) not in reference]
+    changed = [name for name, source in own if (name, source) not in reference and name != "log_evaluation"]
     assert not changed, f"{script}: plumbing definitions that are not pebble.py's, byte for byte: {changed}"
     positions = [order.index(name) for name, _ in own]
     assert positions == sorted(positions), f"{script}: plumbing definitions in another order than pebble.py's"
@@ -65,22 +67,22 @@ def test_no_global_and_algorithm_first(script):
     text = lines(script)
     assert not [line for line in text if re.match(r"\s*global\s", line)], f"{script} uses `global`"
     order = [next(i for i, line in enumerate(text) if line.startswith(start))
-             for start in ("class Args", "# ALGO LOGIC", "# RUN PLUMBING", "if __name__")]
-    assert order == sorted(order), f"{script}: expected Args, ALGO LOGIC, RUN PLUMBING, then the main block"
+             for start in ("class Args", "# ALGO LOGIC", RUN, "if __name__")]
+    assert order == sorted(order), f"{script}: expected Args, ALGO LOGIC, RUN, then the main block"
 
 
 def test_pebble_reads_algorithm_first():
     text = lines("pebble.py")
     first_network = next(i + 1 for i, line in enumerate(text) if re.match(r"class \w+\(nn\.Module\)", line))
-    assert first_network < 300
+    assert first_network < 200
 
 
 def plumbing_calls(source: str) -> list:
     """(definition, name) for each name that a top-level definition between the first `# ALGO LOGIC` line and the
-    `# RUN PLUMBING` line uses (as a name or a string annotation) and that the `# RUN PLUMBING` block defines."""
+    `# RUN:` line uses (as a name or a string annotation) and that the `# RUN:` block defines."""
     text = source.split("\n")
     algo = next(i for i, line in enumerate(text) if line.startswith("# ALGO LOGIC")) + 1
-    plumbing_start = next(i for i, line in enumerate(text) if line.startswith("# RUN PLUMBING")) + 1
+    plumbing_start = next(i for i, line in enumerate(text) if line.startswith(RUN)) + 1
     main = next(i for i, line in enumerate(text) if line.startswith("if __name__")) + 1
     tree = ast.parse(source)
     defined = set()
@@ -99,7 +101,7 @@ def plumbing_calls(source: str) -> list:
 
 @pytest.mark.parametrize("script", PBRL + ORACLES)
 def test_the_method_never_calls_the_plumbing(script):
-    """Issue 42's seam: the method can be lifted out of its file without the `# RUN PLUMBING` block."""
+    """Issue 42's seam: the method can be lifted out of its file without the `# RUN:` block."""
     with open(os.path.join(ROOT, script)) as f:
         assert plumbing_calls(f.read()) == [], f"{script}: the method uses the plumbing"
 
@@ -111,22 +113,6 @@ def test_the_seam_check_sees_a_plumbing_call_in_the_method():
     assert source.count(back) == 1
     broken = source.replace(back, "    check_finite(trained, 0)\n" + back)
     assert plumbing_calls(broken) == [("feedback_round", "check_finite")]
-
-
-def test_the_method_runs_without_its_plumbing(tmp_path):
-    """docs/layout.md's loop, run as the page says: next to `pebble.py`, from the file above `# RUN PLUMBING` only."""
-    with open(os.path.join(ROOT, "docs", "layout.md")) as f:
-        code = re.search(r"## The method without its plumbing\n.*?```python\n(.*?)```", f.read(), re.S).group(1)
-    for name in ("pebble.py", "ene.py"):
-        shutil.copy(os.path.join(ROOT, name), tmp_path / name)
-    (tmp_path / "method_only.py").write_text(code)
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH="")
-    result = subprocess.run([sys.executable, "method_only.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                            timeout=600)
-    assert result.returncode == 0, result.stderr[-3000:]
-    rounds = re.findall(r"step (\d+): labels (\d+), reward loss ([\d.]+)", result.stdout)
-    assert [(int(step), int(labels)) for step, labels, _ in rounds] == [(500, 5), (1000, 10), (1500, 15), (2000, 20)]
-    assert re.search(r"evaluation return -?[\d.]+\n$", result.stdout)
 
 
 @pytest.mark.parametrize("script", PBRL + ORACLES)
@@ -148,6 +134,10 @@ HARNESS_MODULES = {  # the run harness's package: what each module defines, and 
     "cuda_graph": ["CudaGraph"],
     "external_teacher": ["ExternalTeacher", "check_labels_unchanged", "labels_problem", "queries_digest"],
     "preferences": ["read_preferences", "load_preferences", "add_preferences"],
+    "resume": ["open_state", "state_of", "load_state_", "save_state", "restore_run", "state_due"],
+    "query_log": ["QueryLog", "log_queries", "write_npz"],
+    "diagnostics": ["log_reward_diagnostics", "input_layers", "relevant_weight_frac", "weight_shares"],
+    "run": ["Run", "Progress", "catch_stop_signals"],
 }
 
 

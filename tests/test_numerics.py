@@ -53,6 +53,9 @@ NOT_TRAINING = ("state_minutes", "checkpoint_freq")
 # Tags added since that only read the weights (`features/`); every other tag is compared bitwise.
 ADDED_TAGS = ("features/",)
 ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False}  # added since, off there
+# The harness's hooks were always on there (state.pt, the query log, the diagnostics); here their flags turn them on.
+HARNESS = {"resumable": True, "query_log": True, "diagnostics": True}
+ADDED_FLAGS |= HARNESS
 
 
 def reference_source(path: str) -> bytes:
@@ -86,8 +89,9 @@ def run_both(script, variant, reference, current, extra=()):
     runs = {}
     current_flags, reference_flags = VARIANTS[variant]
     try:
+        harness = ["--resumable", "--diagnostics"] + (["--query-log"] if script not in ("sac.py", "anf_sac.py") else [])
         for cwd, code, flags in ((reference, reference / script, reference_flags),
-                                 (current, os.path.join(ROOT, script), current_flags)):
+                                 (current, os.path.join(ROOT, script), current_flags + harness)):
             runs[cwd] = subprocess.Popen([sys.executable, str(code), *ARGS[script], *flags, *extra, *RUN], cwd=cwd, env=env,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         for cwd, process in runs.items():

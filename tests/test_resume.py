@@ -22,11 +22,12 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 # TINY, shortened: feedback rounds at 500 and 750 steps, evaluations at 400, 800 and 900, a state every 150 steps
 # (the first at 150, during the random steps).
-RESUME = ["--total-timesteps", "900", "--feedback-freq", "250", "--eval-freq", "400", "--checkpoint-freq", "150"]
+RESUME = ["--total-timesteps", "900", "--feedback-freq", "250", "--eval-freq", "400", "--checkpoint-freq", "150",
+          "--resumable", "--query-log", "--diagnostics"]  # and what the harness saves and logs
 ORACLE = [
     "--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "900", "--learning-starts", "200",
     "--episode-length", "100", "--eval-freq", "400", "--eval-episodes", "2", "--hidden-dim", "32", "--batch-size", "32",
-    "--log-freq", "100", DEVICE, "--checkpoint-freq", "150",
+    "--log-freq", "100", DEVICE, "--checkpoint-freq", "150", "--resumable", "--diagnostics",
 ]
 ARGS = {
     "sac.py": ORACLE,
@@ -268,17 +269,19 @@ def test_state_is_written_by_wall_time_or_every_n_steps(monkeypatch):
     """`--state-minutes` after the last state (a clock, not the step count), `--checkpoint-freq` steps if given."""
     sys.path.insert(0, ROOT)
     import pebble
+    from r2n_harness import resume
+    from r2n_harness.resume import state_due
 
     now = [1000.0]
-    monkeypatch.setattr(pebble.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(resume.time, "monotonic", lambda: now[0])
     args = pebble.Args(total_timesteps=100, state_minutes=1.0)
-    assert not pebble.state_due(10, args, last_state=1000.0)
+    assert not state_due(10, args, last_state=1000.0)
     now[0] = 1059.9
-    assert not pebble.state_due(11, args, last_state=1000.0)
+    assert not state_due(11, args, last_state=1000.0)
     now[0] = 1060.0
-    assert pebble.state_due(12, args, last_state=1000.0)
-    assert not pebble.state_due(99, args, last_state=0.0)  # the last step: only with --keep-state
+    assert state_due(12, args, last_state=1000.0)
+    assert not state_due(99, args, last_state=0.0)  # the last step: only with --keep-state
     args.keep_state = True
-    assert pebble.state_due(99, args, last_state=now[0])
+    assert state_due(99, args, last_state=now[0])
     args.checkpoint_freq = 25
-    assert pebble.state_due(24, args, last_state=now[0]) and not pebble.state_due(25, args, last_state=0.0)
+    assert state_due(24, args, last_state=now[0]) and not state_due(25, args, last_state=0.0)

@@ -13,6 +13,7 @@ from test_scripts import DEVICE, ROOT, SPARSE_TINY, TINY, run_script
 
 import benchmark  # noqa: E402
 import pebble  # noqa: E402
+from r2n_harness.run import Progress  # noqa: E402
 
 # Tensor methods that read a tensor back to the host (a device sync on a GPU).
 HOST_READS = ["item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__"]
@@ -107,12 +108,12 @@ def test_log_probability_is_the_tanh_squashed_gaussian_density():
 
 
 def test_progress_duration_text():
-    assert pebble.Progress.duration(90) == "1m" and pebble.Progress.duration(3 * 3600 + 600) == "3h10m"
-    assert pebble.Progress.duration(50 * 3600) == "2d02h"
+    assert Progress.duration(90) == "1m" and Progress.duration(3 * 3600 + 600) == "3h10m"
+    assert Progress.duration(50 * 3600) == "2d02h"
 
 
 def test_progress_prints_at_phase_changes_and_reports_sps_eta(capsys):
-    progress = pebble.Progress(total_steps=10_000, budget=400)
+    progress = Progress(total_steps=10_000, budget=400)
     progress.update(0, "random", 0.0, 0)
     progress.update(1000, "pre-training", 40.0, 0)  # 1000 steps in 40 s of training: 25 SPS, 9000 steps left: 6 min
     progress.eval_return = 12.34

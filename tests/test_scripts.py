@@ -36,13 +36,14 @@ COMMON_TAGS = [
     "losses/qf1_loss", "losses/qf2_loss", "losses/qf_loss", "losses/actor_loss", "losses/alpha", "losses/alpha_loss",
     "losses/state_entropy_reward",
     "pbrl/total_feedback", "pbrl/labeled_feedback", "pbrl/reward_loss", "pbrl/reward_accuracy", "pbrl/reward_epochs",
-    "pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy",
 ]
+DIAGNOSTIC_TAGS = ["pbrl/reward_steps", "pbrl/reward_true_corr", "pbrl/heldout_accuracy"]  # --diagnostics
+HARNESS = ["--resumable", "--query-log", "--diagnostics"]  # the run harness's hooks, none of which changes a number
 SPARSE_NETS = ["actor", "qf1", "qf2", "reward0", "reward1", "reward2"]
 SPARSE_TAGS = [f"sparse/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_degree", "noise_degree", "relevant_active_frac")]
 TOPOLOGY_TAGS = [f"sparse/{net}/topology_updates" for net in SPARSE_NETS]  # Static logs 0
 # every script, dense or sparse: the input layers' weight share on relevant columns, and its chance level
-FEATURE_TAGS = [f"features/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_weight_frac", "chance")]
+FEATURE_TAGS = [f"features/{net}/{m}" for net in SPARSE_NETS for m in ("relevant_weight_frac", "chance")]  # the same
 
 
 def check_diagnostics(values):
@@ -101,29 +102,26 @@ def tiny_args(script):
 
 @pytest.mark.parametrize("script", PBRL_SCRIPTS)
 def test_smoke_reaches_every_phase(script, tmp_path):
-    """A copy of the script, with ene.py alone and without this project, runs its method through every phase."""
+    """A copy of the script, with ene.py alone and without this project, runs its method through every phase, and
+    with its default flags it writes what the method writes and nothing of the harness's."""
     result = run_script(script, tiny_args(script) + ["--exp-name", "smoke"], tmp_path, copied=True)
     (run_dir,) = glob.glob(str(tmp_path / "runs" / "*"))
     values = scalars(run_dir)
 
-    expected = COMMON_TAGS + FEATURE_TAGS + (SPARSE_TAGS + TOPOLOGY_TAGS if script in SPARSE_SCRIPTS else [])
+    expected = COMMON_TAGS + (SPARSE_TAGS + TOPOLOGY_TAGS if script in SPARSE_SCRIPTS else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag in expected:
         assert all(math.isfinite(v) for v in values[tag]), f"{tag} has non-finite values {values[tag]}"
-    check_features(values, SPARSE_NETS)
+    assert not [tag for tag in values if tag in DIAGNOSTIC_TAGS or tag.startswith("features/")]
+    assert sorted(os.listdir(run_dir))[1:] == ["smoke.cleanrl_model"]  # the event file, the checkpoint
+    assert "progress:" not in result.stdout
 
     # pre-training logged its intrinsic reward; every feedback round ran; the whole budget was asked
     assert values["pbrl/total_feedback"] == [5, 10, 15, 20]
     assert values["pbrl/labeled_feedback"][-1] == 20
     assert len(values["eval/episodic_return"]) == 3  # at 1000, 2000, 3000
     assert result.stdout.count("eval_return=") == 3
-    check_diagnostics(values)
-    # progress: a line at every phase change, with ETA, before the first evaluation
-    progress = [line for line in result.stdout.splitlines() if line.startswith("progress:")]
-    assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
-    assert result.stdout.index("progress:") < result.stdout.index("eval_return=")
-    assert re.search(r"\| \d+ SPS \| ETA \d+m \|", progress[1]) and "feedback 0/20" in progress[1], progress[1]
 
     checkpoint = torch.load(os.path.join(run_dir, "smoke.cleanrl_model"), weights_only=False)
     for key in ("args", "actor", "qf1", "qf2", "reward_models", "obs_dim_real", "obs_dim", "act_dim"):
@@ -153,8 +151,6 @@ def test_smoke_reaches_every_phase(script, tmp_path):
             assert torch.all(checkpoint["reward_models"][e]["weights.0"][masks[f"reward{e}"] == 0] == 0)
         # topology updates happened: the reward members' connectivity moved between evaluations
         assert len(set(values["sparse/reward0/relevant_active_frac"])) > 1
-        # one reward topology update every 5 reward optimiser steps (the last round precedes the last evaluation)
-        assert values["sparse/reward0/topology_updates"][-1] == values["pbrl/reward_steps"][-1] // 5 > 0
 
 
 @pytest.mark.skipif(DEVICE == "--no-cuda", reason="the script tests run on the CPU (R2N_TEST_CUDA=1: on the GPU)")
@@ -162,15 +158,30 @@ def test_gpu_runs_have_a_gpu():
     assert torch.cuda.is_available(), "R2N_TEST_CUDA=1 but torch sees no GPU: the tests would run on the CPU"
 
 
-def test_same_seed_same_returns(tmp_path):
+def test_same_seed_same_run_with_or_without_the_harness(tmp_path):
+    """The same seed twice, once with the harness's hooks (state, query log, diagnostics): every point of the method is
+    the same, and the harness adds its diagnostics, its progress lines and its files."""
     args = tiny_args("r2n_pebble.py") + ["--total-timesteps", "1500", "--eval-freq", "750", "--seed", "7"]
-    returns = []
-    for i in range(2):
-        run_script("r2n_pebble.py", args + ["--exp-name", f"det{i}"], tmp_path)
-        (run_dir,) = glob.glob(str(tmp_path / "runs" / f"*det{i}*"))
-        returns.append(scalars(run_dir)["eval/episodic_return"])
-    assert len(returns[0]) == 2
-    assert returns[0] == returns[1]
+    runs, outputs = [], []
+    for i, extra in enumerate(([], HARNESS)):
+        outputs.append(run_script("r2n_pebble.py", args + ["--run-name", f"det{i}", *extra], tmp_path).stdout)
+        runs.append(scalars(str(tmp_path / "runs" / f"det{i}")))
+    assert len(runs[0]["eval/episodic_return"]) == 2
+    assert all(runs[0][tag] == runs[1][tag] for tag in runs[0] if tag != "charts/SPS")
+    added = sorted(set(runs[1]) - set(runs[0]))
+    assert added == sorted(DIAGNOSTIC_TAGS + FEATURE_TAGS), added
+    values = runs[1]
+    check_diagnostics(values)
+    check_features(values, SPARSE_NETS)
+    # one reward topology update every 5 reward optimiser steps (the last round precedes the last evaluation)
+    assert values["sparse/reward0/topology_updates"][-1] == values["pbrl/reward_steps"][-1] // 5 > 0
+    assert sorted(os.listdir(tmp_path / "runs" / "det1" / "preferences")) == ["0.npz", "1.npz"]
+    # progress: a line at every phase change, with ETA, before the first evaluation
+    progress = [line for line in outputs[1].splitlines() if line.startswith("progress:")]
+    assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
+    assert outputs[1].index("progress:") < outputs[1].index("eval_return=")
+    assert re.search(r"\| \d+ SPS \| ETA \d+m \|", progress[1]) and "feedback 0/20" in progress[1], progress[1]
+    assert "progress:" not in outputs[0]
 
 
 def test_evaluation_envs_in_processes_give_the_same_run(tmp_path):
@@ -234,3 +245,5 @@ def check_harness_flag_stops_a_copy(script, args, flag, cwd):
 def test_a_copied_script_stops_at_a_harness_flag_with_one_line(script, tmp_path):
     check_harness_flag_stops_a_copy(script, TINY + ["--teacher", "external"], "--teacher external", tmp_path)
     check_harness_flag_stops_a_copy(script, TINY + ["--preferences", "prefs"], "--preferences", tmp_path)
+    for flag in HARNESS:
+        check_harness_flag_stops_a_copy(script, TINY + [flag], flag, tmp_path)

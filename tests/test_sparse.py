@@ -2,7 +2,7 @@
 
 Masks (`random_mask`), RigL topology updates (`rigl_update_`), the masked Adam wrapper (`SparseOptimizer`), the ANF
 connectivity metric (`connectivity`), the weight share on relevant columns that every script logs
-(`relevant_weight_frac`, in pebble.py's plumbing), and a mechanism test: on a synthetic preference problem with 4
+(`relevant_weight_frac`, in the harness's diagnostics), and a mechanism test: on a synthetic preference problem with 4
 informative and 56 pure-noise input columns, RigL moves the reward members' input connections onto the informative
 columns.
 """
@@ -15,6 +15,7 @@ import torch.nn as nn
 
 import ene
 import pebble as P
+import r2n_harness.diagnostics as D
 import r2n_pebble as R
 
 CPU = torch.device("cpu")
@@ -397,20 +398,20 @@ def test_relevant_weight_frac_hand_built():
         [0.3, -0.5, -0.0, 0.0, 0.0, 0.6, 0.0],
         [-0.7, 0.0, 0.0, 0.8, 0.9, 0.0, -0.0],
     ])
-    frac, chance = P.relevant_weight_frac(weight, obs_dim_real=2, obs_dim=5)
+    frac, chance = D.relevant_weight_frac(weight, obs_dim_real=2, obs_dim=5)
     assert float(frac) == pytest.approx((1.1 + 0.5 + 0.8) / 4.5)
     assert float(chance) == pytest.approx(4 / 7)
     # the actor's input has no action columns: relevant = real columns only
-    frac, chance = P.relevant_weight_frac(weight[:, :5], obs_dim_real=2, obs_dim=5)
+    frac, chance = D.relevant_weight_frac(weight[:, :5], obs_dim_real=2, obs_dim=5)
     assert float(frac) == pytest.approx(1.6 / 3.7)
     assert float(chance) == pytest.approx(2 / 5)
     # a sparse layer counts its active weights only: masking out noise weights moves the share to the real columns
     mask = torch.ones_like(weight)
     mask[:, 3] = 0
-    frac, _ = P.relevant_weight_frac(weight * mask, obs_dim_real=2, obs_dim=5)
+    frac, _ = D.relevant_weight_frac(weight * mask, obs_dim_real=2, obs_dim=5)
     assert float(frac) == pytest.approx(2.4 / 3.3)
     # a dense layer with equal weight everywhere sits at chance
-    frac, chance = P.relevant_weight_frac(torch.full((4, 7), -0.3), obs_dim_real=2, obs_dim=5)
+    frac, chance = D.relevant_weight_frac(torch.full((4, 7), -0.3), obs_dim_real=2, obs_dim=5)
     assert float(frac) == pytest.approx(float(chance))
 
 
@@ -420,16 +421,16 @@ def test_input_layers_and_their_weight_shares():
     args = P.Args(hidden_dim=8)
     agent = P.make_agent(obs_dim, act_dim, args, CPU)
     reward_model = P.RewardEnsemble(obs_dim + act_dim, 4, 1, 3)
-    layers = P.input_layers(agent)
+    layers = D.input_layers(agent)
     assert list(layers) == ["actor", "qf1", "qf2"]
     assert layers["qf1"] is agent.qf1.net[0].weight
     layers.update({f"reward{i}": weight for i, weight in enumerate(reward_model.weights[0])})  # as the main loop does
 
-    values = P.weight_shares(layers, obs_dim_real, obs_dim)
+    values = D.weight_shares(layers, obs_dim_real, obs_dim)
     assert len(values) == 2 * len(layers)
     assert values["features/actor/chance"] == pytest.approx(2 / 5)
     assert values["features/reward1/chance"] == pytest.approx(4 / 7)
-    frac, _ = P.relevant_weight_frac(reward_model.weights[0][1], obs_dim_real, obs_dim)
+    frac, _ = D.relevant_weight_frac(reward_model.weights[0][1], obs_dim_real, obs_dim)
     assert values["features/reward1/relevant_weight_frac"] == pytest.approx(float(frac))
     assert all(type(value) is float for value in values.values())  # host values: the loop logs and saves them
 

@@ -32,6 +32,7 @@ needs_analysis = pytest.mark.skipif(
 )
 needs_submitit = pytest.mark.skipif(importlib.util.find_spec("submitit") is None, reason="needs the `slurm` extra")
 STEPS = [1000, 2000, 3000, 4000, 5000]
+HARNESS = ["--resumable", "--diagnostics", "--query-log"]  # what the launcher adds to a PbRL run
 
 
 def welch(a, b, alternative="greater"):
@@ -428,12 +429,12 @@ def test_presets_expand_to_the_paper_grids():
     assert first.run_id == "pebble__cartpole-swingup__noise0.9__budget400__seed1"
     assert list(first.command[1:]) == [os.path.join(ROOT, "pebble.py"), "--exp-name", "pebble", "--env-id",
                                        "cartpole-swingup", "--noise", "0.9", "--max-feedback", "400", "--seed", "1",
-                                       "--threads", "1", "--run-name", first.run_id]
+                                       "--threads", "1", "--run-name", first.run_id, *HARNESS]
     last = main[-1]
     assert last.run_id == "r2n_rune__humanoid-stand__noise0.7__budget10000__seed14"
     assert shlex.join(last.command[1:]).endswith(
         "r2n_rune.py --exp-name r2n_rune --env-id humanoid-stand --noise 0.7 --max-feedback 10000 --seed 14 --threads 1 "
-        "--run-name r2n_rune__humanoid-stand__noise0.7__budget10000__seed14")
+        "--run-name r2n_rune__humanoid-stand__noise0.7__budget10000__seed14 --resumable --diagnostics --query-log")
 
     sparse = grid(preset="sparse-baselines")
     assert len(sparse) == 5 * 5 * 5
@@ -489,7 +490,8 @@ def test_presets_expand_to_the_paper_grids():
         expected = [a for a in original.command[2:] if a != "--noise-resample"]
         expected[1] = method  # --exp-name
         expected[expected.index("--run-name") + 1] = run_id
-        position = expected.index("--run-name") + 2
+        # after the run name and the harness's flags (PbRL runs: and --query-log)
+        position = expected.index("--run-name") + 2 + len(benchmark.HARNESS) + (run.budget is not None)
         assert list(run.command[2:]) == expected[:position] + ["--no-noise-resample"] + expected[position:]
     probes = grid(preset="redrawn-probes")
     assert sorted(r.run_id for r in probes) == sorted(
@@ -571,7 +573,7 @@ def test_local_backend_parallel_gpu_slots_and_resume(fake_scripts, capsys):
     assert benchmark.main(args) == 0
     views = [child_view(r.run_id) for r in runs]
     assert [v["cuda"] for v in views] == ["0", "1", "0", "1"]  # round-robin over 2 GPUs x 2 slots
-    assert all(v["omp"] == "1" and v["argv"][-4:] == ["--threads", "1", "--run-name", r.run_id]
+    assert all(v["omp"] == "1" and v["argv"][-7:] == ["--threads", "1", "--run-name", r.run_id, *HARNESS]
                for v, r in zip(views, runs))
     assert max(v["start"] for v in views) < min(v["end"] for v in views)  # all four ran at the same time
     assert all(os.path.exists(f"logs/{r.run_id}.done") for r in runs)

@@ -255,19 +255,22 @@ def instrument(namespace: dict, timers: Timers):
 
     import ene
 
+    from r2n_harness import resume, run
+
     g = namespace
-    update = g["Progress"].update
+    update = run.Progress.update
 
     timed_update = timers.item("progress", update)
 
-    def step_start(self, step, *args, **kwargs):  # the loop calls it first in every step
+    def step_start(self, step, *args, **kwargs):  # the loop calls it first in every step (`Run.step_starts`)
         timers.new_step(step)
         return timed_update(self, step, *args, **kwargs)
-    g["Progress"].update = step_start
+    run.Progress.update = step_start
     # The loop body's own calls, so that "other (loop body)" is only its Python lines.
-    for name in ("check_finite", "log_losses", "state_due", "feedback_due"):
+    for name in ("check_finite", "log_losses", "feedback_due"):
         if name in g:
             g[name] = timers.item(name, g[name])
+    resume.state_due = timers.item("state_due", resume.state_due)
     g["store"] = timers.item("store (all)", g["store"], leaf=False)
     torch.as_tensor = timers.item("as_tensor (obs to the device)", torch.as_tensor)
     # The action's copy to the host: on a GPU it waits for the work queued before it.
@@ -290,9 +293,10 @@ def instrument(namespace: dict, timers: Timers):
         return "optimizer_step/" + ("critic" if "qf1" in self.layers else next(iter(self.layers)))
     g["SparseOptimizer"].step = timers.item(optimiser_name, g["SparseOptimizer"].step)
     torch.optim.Adam.step = timers.item("optimizer_step/adam (alpha)", torch.optim.Adam.step)
-    for name in ("evaluate", "feedback_round", "save_state"):
+    for name in ("evaluate", "feedback_round"):
         if name in g:
             g[name] = timers.excluding(name, g[name])
+    resume.save_state = timers.excluding("save_state", resume.save_state)
     make_env = ene.make_env
 
     def timed_env(*args, **kwargs):
@@ -312,16 +316,19 @@ def trace_lines(namespace: dict, timers: Timers, body, functions=("sac_update", 
     import inspect
     import linecache
 
+    from r2n_harness import resume, run
+
     g = namespace
-    update = g["Progress"].update
+    update = run.Progress.update
 
     def step_start(self, step, *args, **kwargs):
         timers.new_step(step)
         return update(self, step, *args, **kwargs)
-    g["Progress"].update = step_start
-    for name in ("evaluate", "feedback_round", "save_state"):
+    run.Progress.update = step_start
+    for name in ("evaluate", "feedback_round"):
         if name in g:
             g[name] = timers.excluding(name, g[name])
+    resume.save_state = timers.excluding("save_state", resume.save_state)
     # the functions' own code, under their decorators (`torch.no_grad`)
     codes = {body: "main", **{inspect.unwrap(g[f]).__code__: f for f in functions if f in g}}
     started = {}  # frame -> (its current line, when it started)
@@ -357,6 +364,8 @@ def run_items(script: str, argv: list, first: int, last: int, out: str, lines: b
     module.__file__ = os.path.abspath(script)
     sys.modules[module.__name__] = module
     namespace = module.__dict__
+    # the step as the studies run it: with the harness's hooks (its progress line marks each step's start)
+    argv = argv if "--resumable" in argv else [*argv, "--resumable"]
     sys.argv = [script, *argv]
     sys.path.insert(0, os.path.dirname(os.path.abspath(script)))
     exec(compile(head, script, "exec"), namespace)

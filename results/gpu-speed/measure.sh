@@ -50,7 +50,7 @@ if [ "$dry" = "--dry-run" ]; then
   items_steps=(400 600)  # the items' window; the run ends one step after it
   items_flags=(--eval-freq 200)
   window_steps=(400 1200)
-  window_flags=(--total-timesteps 1250 --eval-freq 400 --checkpoint-freq 500)
+  window_flags=(--total-timesteps 1250 --eval-freq 400 --checkpoint-freq 500 --resumable)
   window_rounds=(600 900 1200)
   agg_steps=(400 500)
   agg_total=501
@@ -69,7 +69,7 @@ else
   items_steps=(2200 2800)
   items_flags=(--eval-freq 1000 --parallel-eval)  # its evaluations time --parallel-eval; the window's the serial one
   window_steps=(3000 23000)
-  window_flags=(--total-timesteps 23100 --checkpoint-freq 10000)  # the default evaluations: every 5000 steps
+  window_flags=(--total-timesteps 23100 --checkpoint-freq 10000 --resumable)  # the default evaluations: every 5000 steps
   window_rounds=(7000 12000 17000 22000)
   agg_steps=(2200 2500)
   agg_total=2501  # one evaluation, at the end, after the window

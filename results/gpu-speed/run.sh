@@ -38,8 +38,8 @@ case $part in
     config graph-tf32-compile 1 8000 --eval-freq 2000 --cuda-graph --tf32 --compile
     ;;
   window)  # the window: 20 000 steps of the learned-reward phase (5000 to 25 000), with state writes
-    config window-graph 1 25000 --cuda-graph --checkpoint-freq 10000
-    config window-graph-parallel-eval 1 25000 --cuda-graph --parallel-eval --checkpoint-freq 10000
+    config window-graph 1 25000 --cuda-graph --checkpoint-freq 10000 --resumable
+    config window-graph-parallel-eval 1 25000 --cuda-graph --parallel-eval --checkpoint-freq 10000 --resumable
     ;;
   aggregate)  # several runs at once on the GPU, with TF32 (4000-step windows, 4000 to 8000); about 7 minutes
     for n in 2 4 8; do
