@@ -313,7 +313,8 @@ def render_states(env_id: str, states: np.ndarray, height: int = 240, width: int
     physics to draw with, kept by a caller that draws many clips (its renderer is made once); else one is made."""
     if env_id not in dmc_tasks():
         return render_gym_states(env_id, states, height, width)
-    physics = physics or dmc_physics(env_id)
+    if physics is None:
+        physics = dmc_physics(env_id)
     frames = []
     for state in states:
         with physics.reset_context():  # sets the state and recomputes positions for drawing

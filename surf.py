@@ -1199,8 +1199,8 @@ if __name__ == "__main__":
                     save_checkpoint(checkpoint_path, args, global_step, saved, dims)
 
             if run:  # `state.pt` when due, at a stop signal, and before a person's round
-                run.step_ends(global_step, obs, start_time,
-                              feedback_due(global_step + 1, pebble_start, loop, args))
+                run.step_ends(global_step, obs, start_time, run.external is not None
+                              and feedback_due(global_step + 1, pebble_start, loop, args))
     except NonFinite as e:  # the checkpoint is written first, for debugging
         save_checkpoint(checkpoint_path, args, global_step, saved, dims)
         message = f"error: {e}; checkpoint for debugging: {checkpoint_path}"

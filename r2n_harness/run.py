@@ -154,7 +154,7 @@ class Run:
         """The progress line (`--resumable`), and the labelling page's status of the run."""
         args, loop = self.args, self.saved["loop"]
         self.step = global_step
-        if not (args.resumable or self.external):
+        if not args.resumable:  # (`--teacher external` turns it on)
             return
         pebble_start = args.learning_starts + getattr(args, "unsup_steps", 0)
         phase = ("random" if global_step < args.learning_starts
