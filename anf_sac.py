@@ -1,4 +1,4 @@
-# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
+# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)
 """ANF-SAC (docs/anf_sac.md): the SAC below with sparse input layers rewired by RigL (ANF PATCH).
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
@@ -8,17 +8,11 @@ PEBBLE. The upper bound of the PbRL curves, and with `--noise 0` the policy whos
 `--noise-type imitate` its histograms (`make_histograms.py`).
 Choices where the paper is silent, and each step in detail: the docs page.
 """
-# ANF PATCH: SAC with sparse input layers, the oracle of R2N's sparse agent: ANF (Grooten et al.,
-# "Automatic Noise Filtering with Dynamic Sparse Training in Deep Reinforcement Learning", AAMAS
-# 2023; code: https://github.com/bramgrooten/automatic-noise-filtering) with the agent half of the
-# R2N patch (`diff pebble.py r2n_pebble.py`) unchanged, minus its reward half. Actor, Q1 and Q2
-# keep 20% of their input-layer weights (independent random masks). Every 1000 SAC optimiser steps
-# RigL drops the 5% smallest active weights and grows as many where the dense gradient is largest.
-# The R2N paper contradicts itself here: its table gives RigL for ANF-SAC, its text says ANF is
-# based on SET; ANF's public code regrows at random, as SET does. Masked weights, gradients and
-# Adam moments stay 0; grown ones start at 0, moments too. Target critics: dense Polyak copies.
-# `--agent-sparsity 0` keeps dense layers but still draws the masks, so it is not sac.py's run for
-# a seed. `diff sac.py anf_sac.py` shows the patch.
+# ANF PATCH (`diff sac.py anf_sac.py`): ANF (Grooten et al., "Automatic Noise Filtering with Dynamic
+# Sparse Training in Deep Reinforcement Learning", AAMAS 2023), the agent half of the R2N patch.
+# Actor, Q1 and Q2 keep 20% of their input-layer weights (random masks). Every 1000 SAC optimiser
+# steps RigL drops the 5% smallest active weights and grows as many where the dense gradient is
+# largest, at 0. Where the paper contradicts itself (RigL or SET): the docs page.
 import importlib
 import importlib.util
 import math

@@ -1,4 +1,4 @@
-# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
+# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)
 """DropConnect-PEBBLE (docs/dropconnect_pebble.md): the PEBBLE below with DropConnect (its PATCH).
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
@@ -8,16 +8,11 @@ defaults: SAC pre-trained on a state-entropy reward, then a feedback round every
 steps (labels, the reward ensemble trained on all of them, the replay buffer relabelled).
 Choices where the paper is silent, and each step in detail: the docs page.
 """
-# DROPCONNECT PATCH (DropConnect-PEBBLE, `diff pebble.py dropconnect_pebble.py`): PEBBLE with
-# DropConnect on the reward models' input layers (an R2N paper baseline). DropConnect (Wan et al.,
-# ICML 2013), simplified as is common: in each reward-training forward pass, every input weight of
-# each member is zeroed w.p. `dropconnect_p` (0.2). Masks: Bernoulli(1 - p), fresh per member and
-# pass, shared by the minibatch; kept weights scale by 1/(1 - p) (inverted scaling). Biases, hidden
-# and output layers are untouched: a deviation, as the paper describes DropConnect on a model's
-# weights, not on its input layer alone (where R2N's reward sparsity acts). Relabelling, the
-# per-step reward and query scoring use the full weights. Early stopping's accuracy uses the loss's
-# dropped-out forwards. Actor and critics are dense. `sparse/reward{e}/*` log input-layer
-# connectivity like R2N's (|w| > 1e-3: a connection).
+# DROPCONNECT PATCH (`diff pebble.py dropconnect_pebble.py`), an R2N paper baseline: DropConnect
+# (Wan et al., ICML 2013) on the reward models' input layers. In each reward-training forward pass
+# every input weight of each member is zeroed w.p. `dropconnect_p` (0.2), fresh per member and pass,
+# and kept weights scale by 1/(1 - p). Relabelling, the per-step reward and query scoring use the
+# full weights. Actor and critics are dense. Its deviations from the paper: the docs page.
 import importlib
 import importlib.util
 import math

@@ -1,4 +1,4 @@
-# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
+# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)
 """L1-PEBBLE (docs/l1_pebble.md): the PEBBLE below plus an L1 penalty on reward inputs (L1 PATCH).
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
@@ -8,13 +8,10 @@ defaults: SAC pre-trained on a state-entropy reward, then a feedback round every
 steps (labels, the reward ensemble trained on all of them, the replay buffer relabelled).
 Choices where the paper is silent, and each step in detail: the docs page.
 """
-# L1 PATCH (L1-PEBBLE, `diff pebble.py l1_pebble.py`): PEBBLE plus an L1 penalty on reward models'
-# input-layer weights (the R2N paper's L1 baseline). Each member's Bradley-Terry loss gets
-# `l1_lambda * sum|w|` over its input-layer weights (biases excluded; lambda 0.01; a sum, not a
-# mean). It pushes reward models to drop input features without a mask. Hidden and output layers,
-# actor and critics are not regularised: a deviation, as the paper puts L1 on the model's weights
-# (the input layer is where R2N's reward sparsity acts). `pbrl/reward_loss`: Bradley-Terry alone.
-# `sparse/reward{e}/*` log reward input-layer connectivity like R2N's (|w| > 1e-3: a connection).
+# L1 PATCH (`diff pebble.py l1_pebble.py`), the R2N paper's L1 baseline: each reward member's
+# Bradley-Terry loss gets `l1_lambda * sum|w|` (0.01) over its input-layer weights, biases excluded.
+# It pushes reward models to drop input features without a mask. Other layers, actor and critics are
+# not regularised: a deviation (the docs page). `pbrl/reward_loss` is the Bradley-Terry loss alone.
 import importlib
 import importlib.util
 import math

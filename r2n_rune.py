@@ -1,4 +1,4 @@
-# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py
+# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)
 """R2N on the PbRL method below (docs/r2n_pebble.md, r2n_surf.md, r2n_rune.md): sparse input layers.
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).

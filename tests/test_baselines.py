@@ -382,4 +382,4 @@ def test_diff_against_parent_is_small(parent, variant, budget):
         b = f.read().splitlines()
     changes = [line for line in list(difflib.unified_diff(a, b, lineterm="", n=0))[2:] if line[:1] in "+-"]
     assert 0 < len(changes) <= budget, f"diff {parent} {variant}: {len(changes)} changed lines > {budget}"
-    assert b[0] == a[0] == "# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py"
+    assert b[0] == a[0] == "# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)"

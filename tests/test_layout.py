@@ -121,6 +121,17 @@ def test_no_line_over_100_characters(script):
     assert not long, f"{script}: lines over 100 characters: {long[:10]}"
 
 
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_the_header_is_at_most_15_lines_and_points_home(script):
+    """Everything above the first import (the pointer home, the docstring, a patch's comment) fits in 15 lines, and
+    the first line names the project and the docs page, so that a copied file still says where it came from."""
+    text = lines(script)
+    header = next(i for i, line in enumerate(text) if line.startswith(("import ", "from ")))
+    assert header <= 15, f"{script}: a header of {header} lines"
+    assert text[0].startswith("# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation"), text[0]
+    assert os.path.exists(os.path.join(ROOT, "docs", script.replace(".py", ".md")))
+
+
 def test_the_main_block_stays_short():
     """pebble.py's main block (`if __name__ == "__main__":` to the end) is setup and the loop; what it calls lives
     above it. A method's own main-block lines (R2N's sparse optimisers and connectivity tags, SURF's unlabelled

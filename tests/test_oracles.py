@@ -28,7 +28,7 @@ import pebble  # noqa: E402
 import r2n_pebble  # noqa: E402
 import sac  # noqa: E402
 
-HEADER = "# docs and experiment results: docs/NAME.md, NAME being the name of this file without .py"
+HEADER = "# Docs: docs/NAME.md in r2n, the R2N paper's reference implementation (NAME: this file's name)"
 # Tiny but complete: random steps 0-199, then one SAC update per step; evaluation and checkpoint every 500 steps;
 # anf_sac: a topology update every 100 SAC steps (13 in the run).
 ORACLE_TINY = [
