@@ -54,6 +54,9 @@ logging.getLogger("absl").addFilter(lambda record: "'settotalmass' is deprecated
 HISTOGRAM_BINS = 100
 NOISE_TYPES = ("gaussian", "imitate")
 GYM_EXAMPLES = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5")  # ANF's tasks
+# Meta-World tasks PEBBLE, SURF and RUNE report (v3 of their v2 tasks); every v3 task of metaworld 3.1.1 runs
+METAWORLD_EXAMPLES = ("button-press-v3", "door-open-v3", "drawer-open-v3", "sweep-into-v3", "window-open-v3")
+METAWORLD_INSTALL = "pip install --no-deps metaworld==3.1.1"
 
 
 def total_obs_dim(obs_dim_real: int, noise: float) -> int:
@@ -89,6 +92,49 @@ def gym_mujoco_class(env_id: str) -> Optional[type]:
     if isinstance(creator, type) and issubclass(creator, MujocoEnv):
         return creator
     return None  # another family, or MuJoCo's v2 and v3, which need mujoco-py
+
+
+def metaworld_tasks() -> list[str]:
+    """Meta-World's v3 tasks with the goal in the observation (B-Pref's), by name (`button-press-v3`); [] without
+    metaworld installed."""
+    import importlib.util
+
+    if importlib.util.find_spec("metaworld") is None:
+        return []
+    return [name.removesuffix("-goal-observable") for name in metaworld_classes()]
+
+
+def is_metaworld_name(env_id: str) -> bool:
+    """Whether `env_id` reads as a Meta-World task's name (lower case, `-v3`), metaworld installed or not."""
+    return env_id.endswith("-v3") and env_id == env_id.lower() and gym.registry.get(env_id) is None
+
+
+def metaworld_classes() -> dict:
+    """metaworld's goal-observable task classes by name, with MuJoCo's weld rows mended (`mend_mocap_welds`)."""
+    import metaworld.env_dict
+    import metaworld.sawyer_xyz_env
+    import mujoco
+
+    base = metaworld.sawyer_xyz_env.SawyerMocapBase
+    if mujoco.mjNEQDATA > len(METAWORLD_WELD) and base.reset_mocap_welds is not mend_mocap_welds:
+        base.reset_mocap_welds = mend_mocap_welds
+    return metaworld.env_dict.ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
+
+
+# The numbers metaworld 3.1.1 writes into each weld constraint: MuJoCo 3.3.0's 11 (anchor, relative pose, torque
+# scale). MuJoCo 3.17's weld rows hold 12 (mjNEQDATA), so metaworld's own write fails at every task's creation.
+METAWORLD_WELD = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 5.0])
+
+
+def mend_mocap_welds(self) -> None:
+    """metaworld's `SawyerMocapBase.reset_mocap_welds`, writing its 11 numbers into the first 11 columns of each weld
+    row. The 12th keeps the value MuJoCo loaded from the model. Installed only where MuJoCo's rows are longer."""
+    import mujoco
+
+    if self.model.nmocap > 0 and self.model.eq_data is not None:
+        for i in range(self.model.eq_data.shape[0]):
+            if self.model.eq_type[i] == mujoco.mjtEq.mjEQ_WELD:
+                self.model.eq_data[i, : len(METAWORLD_WELD)] = METAWORLD_WELD
 
 
 def gym_mujoco_tasks() -> list[str]:
@@ -332,9 +378,10 @@ def dmc_physics(env_id: str):
 
 
 def render_gym_states(env_id: str, states: np.ndarray, height: int, width: int) -> np.ndarray:
-    """`render_states` of a gymnasium MuJoCo task, with the camera of its videos."""
-    env = make_gym_task(env_id, 1)
-    draw = MujocoFrames(env.unwrapped, height, width)
+    """`render_states` of a gymnasium MuJoCo or Meta-World task, with the camera of its videos."""
+    meta = gym_mujoco_class(env_id) is None
+    env = MetaWorldTask(env_id, 1, None) if meta else make_gym_task(env_id, 1)
+    draw = MujocoFrames(env.unwrapped, height, width, *(("corner", True) if meta else ()))
     frames = np.stack([draw(state) for state in states])
     draw.close()
     env.close()
@@ -352,22 +399,23 @@ def mujoco_state(model, data) -> np.ndarray:
 
 class MujocoFrames:
     """Frames of the physics states of a gymnasium MuJoCo task, from the model's tracking camera ("track"; in a model
-    without one, gymnasium's free camera, placed from the model's initial state).
+    without one, gymnasium's free camera, placed from the model's initial state), or of a Meta-World task from its
+    fixed "corner" camera. Meta-World's cameras draw upside down: `upright` flips their frames (Metaworld#516).
 
     It draws on an MjData of its own, set to the state: after a step, the task's own MjData holds the positions of the
     last substep's start, a little behind the state. So videos and the labelling page draw a state the same way."""
 
-    def __init__(self, task, height: int, width: int):
+    def __init__(self, task, height: int, width: int, camera: str = "track", upright: bool = False):
         import mujoco
         from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
 
-        self.model = task.model
+        self.model, self.upright = task.model, upright
         self.data = mujoco.MjData(self.model)
         mujoco.mj_forward(self.model, self.data)  # the model's initial state, positions included
         self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, width)  # the frame fits the buffer
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
-        camera = task.mujoco_renderer.default_cam_config
-        self.renderer = MujocoRenderer(self.model, self.data, camera, width, height, camera_name="track")
+        config = task.mujoco_renderer.default_cam_config
+        self.renderer = MujocoRenderer(self.model, self.data, config, width, height, camera_name=camera)
         self.renderer.render("rgb_array")  # a free camera is placed at the first frame: here, at the initial state
 
     def __call__(self, state: np.ndarray) -> np.ndarray:
@@ -377,7 +425,8 @@ class MujocoFrames:
         mujoco.mj_forward(self.model, self.data)  # positions for drawing
         # another renderer of the process may have made its own GL context current, or freed it and left none
         self.renderer.viewer.make_context_current()
-        return self.renderer.render("rgb_array")
+        frame = self.renderer.render("rgb_array")
+        return np.ascontiguousarray(frame[::-1]) if self.upright else frame
 
     def close(self):
         # MuJoCo's drawing context deletes its GL objects in whichever GL context is current when it is garbage
@@ -407,10 +456,13 @@ def check_env_args(env_id: str, noise: float, noise_type: str = "gaussian", nois
     if noise_type not in NOISE_TYPES:
         raise ValueError(f"--noise-type must be one of {NOISE_TYPES}, got {noise_type!r}")
     tasks = dmc_tasks()
-    if env_id not in tasks and gym_mujoco_class(env_id) is None:
+    if env_id not in tasks and gym_mujoco_class(env_id) is None and env_id not in metaworld_tasks():
+        if is_metaworld_name(env_id) and not metaworld_tasks():
+            raise ValueError(f"--env-id {env_id}: a Meta-World task needs metaworld: {METAWORLD_INSTALL}")
         raise ValueError(
-            f"--env-id {env_id!r} is neither a dm_control suite task (domain-task, e.g. {', '.join(tasks[:6])}) nor a "
-            f"gymnasium MuJoCo task (e.g. {', '.join(GYM_EXAMPLES)})"
+            f"--env-id {env_id!r} is neither a dm_control suite task (domain-task, e.g. {', '.join(tasks[:6])}), a "
+            f"gymnasium MuJoCo task (e.g. {', '.join(GYM_EXAMPLES)}) nor a Meta-World task (e.g. "
+            f"{', '.join(METAWORLD_EXAMPLES)})"
         )
     if noise_type == "imitate":
         if noise_histograms is None:
@@ -486,6 +538,37 @@ def make_gym_task(env_id: str, episode_length: int, render_mode: Optional[str] =
     return StateVideo(env) if render_mode else env
 
 
+class MetaWorldTask(gym.Wrapper):
+    """A Meta-World task as B-Pref runs it: a new random goal and object position at every reset (`_freeze_rand_vec`
+    off), drawn from the task's own generator (metaworld's default draws from NumPy's global one), so that a seed and
+    `rng_state` decide them; `reset(seed=s)` seeds that generator (metaworld ignores a reset's seed); episodes of
+    `episode_length` steps. `info["success"]` is the task's success flag of the step, as metaworld computes it."""
+
+    def __init__(self, env_id: str, episode_length: int, render_mode: Optional[str]):
+        task = metaworld_classes()[f"{env_id}-goal-observable"]()
+        task._freeze_rand_vec, task.seeded_rand_vec = False, True
+        task.max_path_length = episode_length  # metaworld stops a longer episode with an error: 500 by default
+        super().__init__(gym.wrappers.TimeLimit(task, episode_length))
+        self.draw = MujocoFrames(task, 240, 320, camera="corner", upright=True) if render_mode else None
+
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        if seed is not None:
+            self.unwrapped.seed(seed)
+        return self.env.reset(options=options)
+
+    @property
+    def render_mode(self):
+        return "rgb_array" if self.draw else None
+
+    def render(self):
+        return self.draw(mujoco_state(self.unwrapped.model, self.unwrapped.data))
+
+    def close(self):
+        if self.draw:
+            self.draw.close()
+        super().close()
+
+
 def make_env(
     env_id: str,
     seed: int,
@@ -508,8 +591,10 @@ def make_env(
     render_mode = "rgb_array" if video_folder else None
     if env_id in dmc_tasks():
         env = make_dmc_task(env_id, episode_length, render_mode)
-    else:
+    elif gym_mujoco_class(env_id) is not None:
         env = make_gym_task(env_id, episode_length, render_mode)
+    else:
+        env = MetaWorldTask(env_id, episode_length, render_mode)
     bound = env.action_space.dtype.type(1.0)  # in the space's own dtype: gymnasium's is float32, dm_control's float64
     env = gym.wrappers.RescaleAction(env, -bound, bound)  # quadruped's and Humanoid's bounds are not +-1
     if video_folder:

@@ -1,5 +1,5 @@
-"""A scripted labelling session (issue 43, "Labelling for an hour"): a person's long session with the labelling page,
-played by a script in Debian's headless Chromium, against a real `--teacher external` run.
+"""A scripted labelling session (issues 43 and 72): a person's long session with the labelling page, played by a
+script in Debian's headless Chromium, against a real `--teacher external` run.
 
     python results/label-session/session.py --minutes 15 --out /tmp/label-session
 
@@ -17,17 +17,23 @@ of the queries they render). During the session:
 - the run folder's queries are replaced once (`--replace-at`, a fraction of the session): while a round is on the
   page with some answers given, its `queries/R.npz` is replaced (temp file, then os.replace) by other queries of
   the same number (an earlier round's, the two segments swapped and the order reversed: queries the app has never
-  rendered). The page must drop the answers it had, say so, and show clips of the new queries (the digest in the
-  clips' URLs changes; the old digest's clip URL gets 404); the round's labels must then be the answers given after
-  the replacement;
-- a reload is forced once soon after the replacement (besides the random ones).
+  rendered). The run must say at once that its queries file changed under it and write it again; the page must end
+  on the clips of the run's own queries (the digest in the clips' URLs; the other digest's clip URL gets 404),
+  having dropped its answers with its notice if it saw the other queries meanwhile; the round's labels must carry
+  the run's digest;
+- a reload is forced once soon after the replacement (besides the random ones);
+- the app is stopped (SIGTERM) once while the page fetches a round's first clips (`--restart-at`) and started again
+  on its port a moment later: the page must take answers again by itself, without a reload, its notice naming the
+  failed tries and the one that loaded.
 
-At the end it checks that every labels file holds exactly the answers the script gave for its round, each given
-while the page showed the clips of that round's queries as they are in the run folder at the end, and writes
+At the end it checks, with digests, that every labels file holds exactly the answers the script gave for its
+round, each given while the page showed the clips of that round's queries as they are in the run folder at the
+end; that the labels file names those queries' digest; and that the run's query log (`preferences/R.npz`) holds
+the same answers for queries of the same digest, with the SHA-256 of that labels file. It writes
 `summary.json` (every check, and `ok`: all of them held) and `session.log` (what the script did, when): rounds,
-answers, the app's memory (RSS every 10 s, against `--rss-bound-mb`: the clip cache is bounded by
-`--clip-cache-mb`), the slowest `/api/state`, the notices seen, and any traceback in the app's or the run's output
-(there must be none). The exit code is 0 when every check held.
+answers, the app's memory (RSS every 10 s, and each app's peak, VmHWM, against `--rss-bound-mb`: the clip cache is
+bounded by `--clip-cache-mb`), the slowest `/api/state`, the notices seen, and any traceback in the app's or the
+run's output (there must be none). The exit code is 0 when every check held.
 """
 import argparse
 import hashlib
@@ -56,17 +62,24 @@ RUN = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "2
 KEYS = {"\ue012": 0, "\ue014": 1, "=": 0.5, "s": "skip"}  # selenium's ← and →, then = and s
 SYMBOLS = {0: "\u2190", 1: "\u2192", 0.5: "=", "skip": "s"}  # an answer as the page's notices write it
 OTHER_TAB = "another tab of this browser is answering round"
+RSS_BOUND_MB = 1000  # docs/labelling.md's bound for the app, with its default cache (results/label-session/README.md)
 
 
-def rss_mb(pid: int) -> float:
+def rss_mb(pid: int, field: str = "VmRSS") -> float:
+    """A process's resident memory (VmRSS) or its peak so far (VmHWM), in MB."""
     with open(f"/proc/{pid}/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+        return next(int(line.split()[1]) for line in f if line.startswith(f"{field}:")) / 1024
 
 
 def digest_of(physics: np.ndarray, env_id: str) -> str:
     """The digest of a queries file as docs/labelling.md describes it (of the task and the physics states): the
     page's clip URLs carry it."""
     return hashlib.sha256(f"{env_id} {physics.dtype} {physics.shape}".encode() + physics.tobytes()).hexdigest()[:16]
+
+
+def logged_answer(label: float):
+    """A query log's label as the page's answer: NaN is a skipped query."""
+    return "skip" if np.isnan(label) else float(label)
 
 
 def file_digest(path: str) -> str:
@@ -112,10 +125,11 @@ def main():
     parser.add_argument("--segment-size", type=int, default=10, help="the run's: frames a clip")
     parser.add_argument("--feedback-freq", type=int, default=300, help="the run's: steps between rounds")
     parser.add_argument("--clip-cache-mb", type=float, default=256, help="the app's --clip-cache-mb")
-    parser.add_argument("--rss-bound-mb", type=float, default=1000, help="the app's RSS must stay below this")
+    parser.add_argument("--rss-bound-mb", type=float, default=RSS_BOUND_MB, help="each app's peak RSS must stay below")
     parser.add_argument("--second-tab-at", type=float, default=0.25, help="fraction of the session")
     parser.add_argument("--second-tab-seconds", type=float, default=120)
     parser.add_argument("--replace-at", type=float, default=0.5, help="fraction of the session")
+    parser.add_argument("--restart-at", type=float, default=0.7, help="fraction of the session")
     args = parser.parse_args()
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
@@ -148,7 +162,8 @@ def main():
     command = [sys.executable, os.path.join(ROOT, "label_app.py"), run_dir, "--port", str(port),
                "--clip-cache-mb", str(args.clip_cache_mb)]
     log("app: " + " ".join(command[1:]))
-    app = subprocess.Popen(command, env=env, stdout=app_log, stderr=subprocess.STDOUT)
+    start_app = lambda: subprocess.Popen(command, env=env, stdout=app_log, stderr=subprocess.STDOUT)  # noqa: E731
+    app, app_peaks = start_app(), []  # the app now, and the peak RSS (VmHWM) of each app stopped
     address = f"http://127.0.0.1:{port}"
     driver = chrome()
     given = {}  # round -> the answers the script gave, in order (less those undone, or dropped by a replacement)
@@ -157,7 +172,8 @@ def main():
                "clip_cache_mb": args.clip_cache_mb, "rss_bound_mb": args.rss_bound_mb, "rss_mb_each_minute": [],
                "rss_peak_mb": 0.0, "rss_baseline_mb": None, "slowest_state_s": 0.0, "notices": set(),
                "messages": set(), "reloads": 0, "reloads_restored": 0, "undos": 0, "ctrl_equals": 0, "answers": 0,
-               "second_tabs": 0, "second_tab_saw_first": 0, "sustained_second_tab": None, "replacement": None}
+               "second_tabs": 0, "second_tab_saw_first": 0, "sustained_second_tab": None, "replacement": None,
+               "restart": None}
     # read in one script each: the page replaces its notices at every render (a found element can go stale)
     text = lambda element="progress": driver.execute_script(  # noqa: E731
         "return document.getElementById(arguments[0]).textContent", element)
@@ -207,6 +223,7 @@ def main():
     end = began + 60 * args.minutes
     next_minute, next_sample, next_tab = time.time(), time.time(), time.time() + 90
     tab_at, replace_at = began + 60 * args.minutes * args.second_tab_at, began + 60 * args.minutes * args.replace_at
+    restart_at = began + 60 * args.minutes * args.restart_at
     second = None  # the sustained second tab: {"handle", "until", ...}
     force_reload, last_round = False, None
     try:
@@ -245,6 +262,33 @@ def main():
                 log(f"round {round_index}: submitted {given.get(round_index)}")
                 time.sleep(0.5)
                 continue
+            loading = ": query " in progress and not driver.find_element(By.ID, "answer-left").is_enabled()
+            if (loading and summary["restart"] is None and time.time() >= restart_at
+                    and progress.endswith(f"query 1 of {args.queries_per_round}") and driver.execute_script(
+                        "return !document.getElementById('left').complete")):  # its clips not there yet
+                # the app stopped while the page fetches this round's first clips, and started again on its port
+                round_index = int(progress.split()[1].rstrip(":"))
+                app_peaks.append(rss_mb(app.pid, "VmHWM"))
+                app.terminate()
+                app.wait(timeout=30)
+                stopped = time.time()
+                log(f"round {round_index}: the app stopped (SIGTERM) while the page fetched the round's first clips")
+                tries = set()
+                wait_until(lambda: tries.add(text("message")) or "did not load (try" in text("message"), 30)
+                time.sleep(2)  # the app is away a while; the page keeps trying
+                app = start_app()
+                log(f"round {round_index}: the app started again on port {port} after {time.time() - stopped:.1f} s")
+                recovered = wait_until(lambda: tries.add(text("message")) or taking(round_index, 0), 120)
+                tries.add(text("message"))
+                tries.discard("")
+                summary["restart"] = {
+                    "round": round_index, "recovered_without_reload": recovered,
+                    "seconds_to_answers": round(time.time() - stopped, 1), "messages": sorted(tries),
+                    "ok": bool(recovered and any("did not load (try" in m for m in tries)
+                               and any("loaded on try" in m for m in tries))}
+                log(f"round {round_index}: the page takes answers again by itself: {recovered}, "
+                    f"{summary['restart']['seconds_to_answers']} s after the stop; its messages: {sorted(tries)}")
+                continue
             if ": query " not in progress or not driver.find_element(By.ID, "answer-left").is_enabled():
                 time.sleep(0.2)  # the run trains, or the clips load
                 continue
@@ -264,12 +308,25 @@ def main():
                 log(f"round {round_index}: queries/{round_index}.npz replaced with {query} answers given "
                     f"({replaced}); page's clips: digest {before[0][3]}")
                 started = time.time()
-                handled = wait_until(lambda: taking(round_index, 0) and
-                                     all(c[3] == replaced["new_digest"] for c in clip_digests()), 30)
+                said = f"queries: {os.path.join('runs', 'session', 'queries', f'{round_index}.npz')} is no longer"
+                seen_messages = set()
+                run_said = wait_until(lambda: seen_messages.add(text("message")) or
+                                      said in open(os.path.join(args.out, "run.log")).read(), 30)
+                run_said_after_s = round(time.time() - started, 1)
+                settle = time.time() + 3  # the page polls every 2 s: it has seen the file as the run wrote it again
+                wait_until(lambda: seen_messages.add(text("message")) or time.time() > settle, 5)
+                handled = wait_until(lambda: seen_messages.add(text("message")) or
+                                     (taking(round_index, 0) or taking(round_index, query)) and
+                                     all(c[3] == replaced["old_digest"] for c in clip_digests()), 30)
+                seen_messages.discard("")
+                dropped = taking(round_index, 0)  # the page saw the other queries and dropped its answers
                 replaced.update(round=round_index, answers_before=list(given[round_index]),
-                                page_digest_before=before[0][3], page_noticed=handled,
-                                noticed_after_s=round(time.time() - started, 1), message=text("message"),
-                                progress=text(), page_digest_after=clip_digests()[0][3])
+                                page_digest_before=before[0][3], run_said_so=run_said,
+                                run_said_after_s=run_said_after_s, page_settled=handled, page_dropped=dropped,
+                                settled_after_s=round(time.time() - started, 1), message=text("message"),
+                                messages=sorted(seen_messages), progress=text(),
+                                page_digest_after=clip_digests()[0][3],
+                                file_digest_after=file_digest(os.path.join(run_dir, "queries", f"{round_index}.npz")))
                 state = json.loads(urllib.request.urlopen(f"{address}/api/state", timeout=30).read())
                 replaced["state_digest"] = state["queries_digest"]
                 for name, d in (("old_clip_http", replaced["old_digest"]), ("new_clip_http", replaced["new_digest"])):
@@ -279,17 +336,20 @@ def main():
                     except urllib.error.HTTPError as e:
                         replaced[name] = e.code
                 replaced["handled"] = bool(
-                    handled and replaced["page_digest_before"] == replaced["old_digest"]
-                    and replaced["page_digest_after"] == replaced["new_digest"] == replaced["state_digest"]
-                    and f"round {round_index}'s queries have changed" in replaced["message"]
-                    and f"your {count(query)} to it were not used" in replaced["message"]
-                    and replaced["old_clip_http"] == 404 and replaced["new_clip_http"] == 200)
-                log(f"round {round_index}: the page {'noticed' if handled else 'did NOT notice'} in "
-                    f"{replaced['noticed_after_s']} s: message {replaced['message']!r}, progress "
-                    f"{replaced['progress']!r}, clips' digest {replaced['page_digest_after']}, old clip HTTP "
-                    f"{replaced['old_clip_http']}, new clip HTTP {replaced['new_clip_http']}")
+                    run_said and handled and replaced["page_digest_before"] == replaced["old_digest"]
+                    and replaced["page_digest_after"] == replaced["old_digest"] == replaced["state_digest"]
+                    == replaced["file_digest_after"]
+                    and (not dropped or any(f"your {count(query)} to it were not used" in m for m in seen_messages))
+                    and replaced["old_clip_http"] == 200 and replaced["new_clip_http"] == 404)
+                log(f"round {round_index}: the run said so after {run_said_after_s} s: {run_said}; the page "
+                    f"{'settled' if handled else 'did NOT settle'} on the run's queries after "
+                    f"{replaced['settled_after_s']} s ({'answers dropped' if dropped else 'answers kept'}): message "
+                    f"{replaced['message']!r}, progress {replaced['progress']!r}, clips' digest "
+                    f"{replaced['page_digest_after']}, the run's queries' clip HTTP {replaced['old_clip_http']}, "
+                    f"the other queries' clip HTTP {replaced['new_clip_http']}")
                 summary["replacement"] = replaced
-                given[round_index], shown[round_index] = [], []  # the page dropped them: the labels are what follows
+                if dropped:  # the labels are the answers that follow
+                    given[round_index], shown[round_index] = [], []
                 force_reload = True
             elif second is None and summary["sustained_second_tab"] is None and time.time() >= tab_at and query >= 1:
                 # a second tab that stays open while the first answers
@@ -384,6 +444,7 @@ def main():
             pass
         try:
             summary["rss_final_mb"] = sample_memory()
+            app_peaks.append(rss_mb(app.pid, "VmHWM"))
         except (OSError, StopIteration):  # the app has gone
             summary["rss_final_mb"] = None
         driver.quit()
@@ -391,23 +452,39 @@ def main():
         run.terminate()
         app.wait(timeout=30)
         run.wait(timeout=60)
-    written, digests = {}, {}
+    written, digests, named, sha256 = {}, {}, {}, {}
     labels = os.path.join(run_dir, "labels")
     for name in os.listdir(labels) if os.path.isdir(labels) else []:
         if name.endswith(".json"):
-            with open(os.path.join(labels, name)) as f:
-                written[int(name[:-5])] = json.load(f)
-            digests[int(name[:-5])] = file_digest(os.path.join(run_dir, "queries", name[:-5] + ".npz"))
+            with open(os.path.join(labels, name), "rb") as f:
+                content = f.read()
+            r, labels_file = int(name[:-5]), json.loads(content)
+            written[r], named[r] = labels_file["answers"], labels_file["queries"]
+            sha256[r] = hashlib.sha256(content).hexdigest()
+            digests[r] = file_digest(os.path.join(run_dir, "queries", name[:-5] + ".npz"))
+    logged = {}  # round -> (answers, queries digest, labels file's SHA-256) of the run's query log
+    for r in written:
+        path = os.path.join(run_dir, "preferences", f"{r}.npz")
+        if os.path.exists(path):
+            with np.load(path) as data:
+                logged[r] = ([logged_answer(x) for x in data["labels"]],
+                             digest_of(data["physics"], str(data["env_id"])),
+                             str(data["label_sha256"][0]) if len(data["label_sha256"]) else "")
     replacement = summary["replacement"] or {}
     summary.update(
         run_exit_code=run.returncode, rounds_written=len(written), answers_written=sum(map(len, written.values())),
         labels_match=all(written[r] == given.get(r) for r in written),
         labels_of_clips_shown=all(shown.get(r) == [digests[r]] * len(written[r]) for r in written),
+        labels_name_their_queries=all(named[r] == digests[r] for r in written),
+        rounds_logged=len(logged),
+        query_log_equals_labels=all(logged[r] == (written[r], named[r], sha256[r]) for r in logged),
+        unlogged_rounds=sorted(set(written) - set(logged)),
         replaced_round_labels=written.get(replacement.get("round")),
-        replaced_round_labels_are_after=replacement.get("round") in written and
+        replaced_round_labels_are_the_runs=replacement.get("round") in written and
         written[replacement["round"]] == given[replacement["round"]] and
-        digests[replacement["round"]] == replacement["new_digest"],
-        rss_below_bound=summary["rss_peak_mb"] < args.rss_bound_mb,
+        digests[replacement["round"]] == named[replacement["round"]] == replacement["old_digest"],
+        app_peaks_mb=[round(p, 1) for p in app_peaks],
+        rss_below_bound=max(app_peaks + [summary["rss_peak_mb"]]) < args.rss_bound_mb,
         clips_fetched=len(clip_bytes), clips_fetched_mb=round(sum(clip_bytes.values()) / 2 ** 20, 1),
         tracebacks=[name for name in ("app.log", "run.log")
                     if "Traceback" in open(os.path.join(args.out, name)).read()],
@@ -417,12 +494,17 @@ def main():
         "labels files equal the answers given": summary["labels_match"],
         "each answer given with its round's clips": summary["labels_of_clips_shown"],
         "at least 20 rounds": summary["rounds_written"] >= 20,
+        "each labels file names the digest of its round's queries": summary["labels_name_their_queries"],
+        "the query log holds the same answers, digests and labels files' SHA-256":
+            summary["query_log_equals_labels"] and summary["rounds_logged"] >= 20
+            and len(summary["unlogged_rounds"]) <= 1,  # the last round may still be training at the end
         "queries replaced once and handled": bool(replacement.get("handled")),
-        "the replaced round's labels are the answers after the replacement": summary["replaced_round_labels_are_after"],
+        "the replaced round's labels answer the run's queries": summary["replaced_round_labels_are_the_runs"],
+        "the app restarted mid-fetch, the page recovering by itself": bool((summary["restart"] or {}).get("ok")),
         "a second tab open a while, each tab showing the other": bool((summary["sustained_second_tab"] or {}).get("ok")),
         "every momentary second tab showed the first": summary["second_tab_saw_first"] == summary["second_tabs"],
         "reloads, each bringing the answers back": 0 < summary["reloads"] == summary["reloads_restored"],
-        f"app RSS below {args.rss_bound_mb:g} MB": summary["rss_below_bound"],
+        f"each app's peak RSS below {args.rss_bound_mb:g} MB": summary["rss_below_bound"],
         "no traceback": not summary["tracebacks"],
         "no failure": "failure" not in summary}
     summary["ok"] = all(summary["checks"].values())
