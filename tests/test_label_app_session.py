@@ -334,3 +334,22 @@ def test_label_app_new_queries_for_the_round_on_the_page_in_a_headless_browser(t
         WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 3" and answers_enabled(d))
         assert driver.find_element(By.ID, "right").get_attribute("src").endswith(f"/clip/0/0/1.gif?queries={digest}")
         assert stored(driver) == {}
+
+
+def test_label_app_memory_grows_per_clip_by_the_clip_alone_with_a_real_app(tmp_path, monkeypatch):
+    """A real app draws 10 clips of 20 real cartpole steps, one after another. Past the first three (the renderer's
+    one-time start), its peak memory grows by the clips it keeps and by at most 0.5 MB a clip besides. Drawing each
+    clip in the request's own thread, as the app did, grew it by some 3 MB a clip: each thread's malloc arena kept
+    its clip's peak. `results/label-session/memory_200.py` runs the same probe over a 200-clip session at 50 steps."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    sys.path.insert(0, os.path.join(ROOT, "results", "label-session"))
+    import memory_200
+    from test_labelling import free_port
+
+    run = str(tmp_path / "run")
+    memory_200.write_run(run, "cartpole-swingup", 1, 5, 20)
+    record = memory_200.probe(run, free_port(), 1, 5)
+    warm = record["rss_after_each_clip_mb"][2]
+    kept = sum(record["clip_mb"][3:])  # the default 256 MB cache keeps them all
+    assert record["clips"] == 10
+    assert record["peak_mb"] - warm - kept <= 0.5 * 7, record

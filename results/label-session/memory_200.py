@@ -21,6 +21,7 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
+import benchmark  # noqa: E402
 import ene  # noqa: E402
 
 
@@ -53,21 +54,23 @@ def status(pid: int, field: str) -> float:
         return int(next(line for line in f if line.startswith(field)).split()[1]) / 1024
 
 
-def probe(run: str, port: int, rounds: int, queries: int, extra=()) -> dict:
-    """Start the app on `run`, fetch every clip once, return the memory record."""
-    app = subprocess.Popen([sys.executable, os.path.join(ROOT, "label_app.py"), run, "--port", str(port), *extra],
+def probe(run: str, port: int, rounds: int, queries: int, app_path: str = os.path.join(ROOT, "label_app.py")) -> dict:
+    """Start the app (`app_path`) on `run`, fetch every clip once, return the memory record: the RSS after each clip
+    and each clip's bytes (with the default cache, the 200 clips are all kept: their sum is the cache's size)."""
+    app = subprocess.Popen([sys.executable, app_path, run, "--port", str(port)],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                            env=dict(os.environ, OMP_NUM_THREADS="1"))
     try:
         assert app.stdout.readline().startswith("labelling "), "the app did not start"
         started = status(app.pid, "VmRSS")
-        rss, seconds = [], []
+        rss, seconds, sizes = [], [], []
         for r in range(rounds):
             for q in range(queries):
                 for side in (0, 1):
                     began = time.time()
                     with urllib.request.urlopen(f"http://127.0.0.1:{port}/clip/{r}/{q}/{side}.gif", timeout=600) as reply:
-                        assert reply.status == 200 and len(reply.read()) > 0
+                        sizes.append(len(reply.read()))
+                        assert reply.status == 200 and sizes[-1] > 0
                     seconds.append(time.time() - began)
                     rss.append(status(app.pid, "VmRSS"))
         peak = status(app.pid, "VmHWM")
@@ -76,6 +79,7 @@ def probe(run: str, port: int, rounds: int, queries: int, extra=()) -> dict:
         output = app.communicate(timeout=60)[0]
     assert "Traceback" not in output, output
     return {"clips": len(rss), "rss_at_start_mb": started, "rss_after_each_clip_mb": rss, "peak_mb": peak,
+            "clip_mb": [size / 2 ** 20 for size in sizes],
             "seconds_per_clip": float(np.mean(seconds))}
 
 
@@ -91,13 +95,13 @@ def main():
     run = os.path.join(a.out, "run")
     write_run(run, a.env_id, a.rounds, a.queries, a.steps)
     record = {"env_id": a.env_id, "rounds": a.rounds, "queries": a.queries, "steps": a.steps,
-              "cpu": ene.cpu_model() if hasattr(ene, "cpu_model") else None,
+              "cpu": benchmark.cpu_of(),
               **probe(run, a.port, a.rounds, a.queries)}
     with open(os.path.join(a.out, "memory.json"), "w") as f:
         json.dump(record, f, indent=1)
     print(f"{record['clips']} clips of {a.steps} steps: RSS {record['rss_at_start_mb']:.0f} MB at the start, "
           f"{record['rss_after_each_clip_mb'][-1]:.0f} MB at the end, peak {record['peak_mb']:.0f} MB, "
-          f"{record['seconds_per_clip']:.1f} s a clip")
+          f"{record['seconds_per_clip']:.1f} s a clip, {sum(record['clip_mb']):.0f} MB of clips")
 
 
 if __name__ == "__main__":

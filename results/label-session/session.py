@@ -62,7 +62,7 @@ RUN = ["--env-id", "cartpole-swingup", "--noise", "0.9", "--total-timesteps", "2
 KEYS = {"\ue012": 0, "\ue014": 1, "=": 0.5, "s": "skip"}  # selenium's ← and →, then = and s
 SYMBOLS = {0: "\u2190", 1: "\u2192", 0.5: "=", "skip": "s"}  # an answer as the page's notices write it
 OTHER_TAB = "another tab of this browser is answering round"
-RSS_BOUND_MB = 1000  # docs/labelling.md's bound for the app, with its default cache (results/label-session/README.md)
+RSS_BOUND_MB = 800  # docs/labelling.md's bound for a 200-clip session with the default cache (memory_200.py)
 
 
 def rss_mb(pid: int, field: str = "VmRSS") -> float:
