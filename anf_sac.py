@@ -200,26 +200,28 @@ class Actor(nn.Module):
 
 
 @torch.no_grad()
-def evaluate(actor: Actor, envs: list, device: torch.device) -> np.ndarray:
-    """One deterministic episode per env, stepped in
-    lockstep (one batched forward); returns true returns."""
+def evaluate(actor: Actor, envs: list, device: torch.device) -> tuple:
+    """One deterministic episode per env, stepped in lockstep (one batched forward). Returns the
+    true returns and, on Meta-World, whether each episode succeeded at any step (else NaN)."""
     obs = np.stack([env.reset()[0] for env in envs])
     returns, running = np.zeros(len(envs)), np.ones(len(envs), dtype=bool)
+    success = np.full(len(envs), np.nan)
     while running.any():
         mean, _ = actor(torch.as_tensor(obs, device=device))
         torch.randn_like(mean)  # get_action's unused draw: keeps training's random stream
         actions = torch.tanh(mean).cpu().numpy()
         # MuJoCo would raise on them: a NaN return, which stops the run
         if not np.isfinite(actions).all():
-            return np.full(len(envs), np.nan)
+            return np.full(len(envs), np.nan), success
         stepping = np.flatnonzero(running)
         for i in stepping:  # all at once when they are processes (`--parallel-eval`)
             envs[i].step_async(actions[i])
         for i in stepping:
-            obs[i], reward, terminated, truncated, _ = envs[i].step_wait()
+            obs[i], reward, terminated, truncated, info = envs[i].step_wait()
             returns[i] += reward
+            success[i] = np.fmax(success[i], info.get("success", np.nan))
             running[i] = not (terminated or truncated)
-    return returns
+    return returns, success
 
 
 # ALGO LOGIC: the replay buffer, on the device
@@ -648,9 +650,12 @@ def log_evaluation(writer: SummaryWriter, global_step: int, actor: Actor, envs: 
     again), print a console line, and stop on a non-finite return. `start_time`: the training
     clock's start, so that SPS counts training time only."""
     started = time.time()
-    eval_return = float(evaluate(actor, envs, device).mean())
+    returns, success = evaluate(actor, envs, device)
+    eval_return = float(returns.mean())
     sps = int((global_step + 1) / (time.time() - start_time))
     loop.last_eval = {"eval/episodic_return": eval_return, "charts/SPS": sps} | more
+    if not np.isnan(success).any():  # a task with a success flag (Meta-World)
+        loop.last_eval["eval/success_rate"] = float(success.mean())
     for tag, value in loop.last_eval.items():
         writer.add_scalar(tag, value, global_step + 1)
     print(f"step={global_step + 1} eval_return={eval_return:.2f} SPS={sps} "

@@ -1,6 +1,8 @@
-"""Every script on gymnasium's MuJoCo tasks (issue 33): a smoke run through every phase on HalfCheetah-v5 and on a task
-that normally ends its episodes when the body falls (Hopper-v5), with the noise appended, and exact resume after a
-SIGKILL on Hopper-v5."""
+"""Every script on gymnasium's MuJoCo tasks (issue 33) and on Meta-World's (issue 70): a smoke run through every phase
+on HalfCheetah-v5, on a task that normally ends its episodes when the body falls (Hopper-v5) and on button-press-v3
+(its success rate logged), with the noise appended, and exact resume after a SIGKILL on Hopper-v5 and on
+button-press-v3 (a new goal at every reset, from the generators the state keeps)."""
+import importlib.util
 import math
 
 import pytest
@@ -31,7 +33,10 @@ EXTRA = {  # the sparse scripts update their topologies within the run; SURF kee
     "surf.py": ["--surf-tau", "0.6"],
     "anf_sac.py": ["--agent-topology-period", "50"],
 }
-TASKS = {"HalfCheetah-v5": (17, 171, 6), "Hopper-v5": (11, 111, 3)}  # real features, all features at 0.9, actions
+TASKS = {"HalfCheetah-v5": (17, 171, 6), "Hopper-v5": (11, 111, 3),  # real features, all features at 0.9, actions
+         "button-press-v3": (39, 391, 4)}
+METAWORLD = pytest.mark.skipif(importlib.util.find_spec("metaworld") is None, reason="metaworld is not installed")
+ENV_IDS = [pytest.param(env_id, marks=METAWORLD) if env_id.endswith("-v3") else env_id for env_id in TASKS]
 SAC_TAGS = ["eval/episodic_return", "charts/episodic_return", "charts/episodic_length", "losses/qf1_loss",
             "losses/qf2_loss", "losses/actor_loss", "losses/alpha", "features/actor/relevant_weight_frac"]
 PBRL_TAGS = ["losses/state_entropy_reward", "pbrl/total_feedback", "pbrl/labeled_feedback", "pbrl/reward_loss",
@@ -42,14 +47,14 @@ def args_of(script, env_id):
     return ["--env-id", env_id, *GYM_TINY, *(PBRL_TINY if script in PBRL else []), *EXTRA.get(script, [])]
 
 
-@pytest.mark.parametrize("env_id", list(TASKS))
+@pytest.mark.parametrize("env_id", ENV_IDS)
 @pytest.mark.parametrize("script", PBRL + ORACLES)
 def test_smoke_reaches_every_phase(script, env_id, tmp_path):
     harness = ["--resumable", "--diagnostics"]  # the features' chance and the progress lines
     result = run_script(script, args_of(script, env_id) + harness + ["--run-name", "smoke", "--exp-name", "smoke"],
                         tmp_path)
     values = scalars(str(tmp_path / "runs" / "smoke"))
-    expected = SAC_TAGS + (PBRL_TAGS if script in PBRL else [])
+    expected = SAC_TAGS + (PBRL_TAGS if script in PBRL else []) + (["eval/success_rate"] if env_id.endswith("-v3") else [])
     missing = [tag for tag in expected if tag not in values]
     assert not missing, f"missing tags {missing}"
     for tag, points in values.items():
@@ -58,6 +63,8 @@ def test_smoke_reaches_every_phase(script, env_id, tmp_path):
     assert values["charts/episodic_length"] == [50] * len(values["charts/episodic_length"])
     assert len(values["charts/episodic_length"]) == 6
     assert len(values["eval/episodic_return"]) == 1 and result.stdout.count("eval_return=") == 1
+    assert ("eval/success_rate" in values) == env_id.endswith("-v3")  # a task with a success flag only
+    assert all(v in (0.0, 1.0) for v in values.get("eval/success_rate", []))  # of one evaluation episode
     real, total, actions = TASKS[env_id]
     assert values["features/actor/chance"] == [pytest.approx(real / total)]  # the real columns are the task's
     if script in PBRL:
@@ -75,11 +82,13 @@ def test_smoke_reaches_every_phase(script, env_id, tmp_path):
 RESUME = ["--checkpoint-freq", "50", "--total-timesteps", "400", "--eval-freq", "200", "--resumable"]
 
 
-def test_killed_at_a_random_moment_resumes_exactly_on_a_gymnasium_task(tmp_path, monkeypatch):
-    """test_resume's test on Hopper-v5 with the noise: the env's generators (gymnasium's among them) and its replayed
-    episode bring a killed run back to where it was, and it ends exactly as an uninterrupted run."""
+@pytest.mark.parametrize("env_id", ["Hopper-v5", pytest.param("button-press-v3", marks=METAWORLD)])
+def test_killed_at_a_random_moment_resumes_exactly_on_a_gymnasium_task(env_id, tmp_path, monkeypatch):
+    """test_resume's test on Hopper-v5 and button-press-v3 with the noise: the env's generators (gymnasium's and
+    metaworld's among them) and its replayed episode bring a killed run back to where it was, and it ends exactly as
+    an uninterrupted run."""
     script = "pebble.py"
-    monkeypatch.setitem(test_resume.ARGS, script, args_of(script, "Hopper-v5") + RESUME)
+    monkeypatch.setitem(test_resume.ARGS, script, args_of(script, env_id) + RESUME)
     window = test_resume.training_time_after_first_state(script, tmp_path, "reference")
     test_resume.kill_at_a_random_moment(script, tmp_path, "killed", window)
     stdout, _ = test_resume.run(script, tmp_path, "killed")

@@ -111,3 +111,17 @@ def test_a_metaworld_name_without_metaworld_says_what_to_install(monkeypatch):
     assert str(error.value) == "--env-id button-press-v3: a Meta-World task needs metaworld: " + ene.METAWORLD_INSTALL
     with pytest.raises(ValueError, match="nor a Meta-World task"):
         ene.check_env_args("cheetah-runn", 0.9)
+
+
+@needs_metaworld
+def test_the_labelling_page_draws_a_metaworld_clip(tmp_path, monkeypatch):
+    """A queries file of a Meta-World run, as `--teacher external` writes it: the app draws its clips."""
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    sys.path.insert(0, os.path.join(ROOT, "results", "label-session"))
+    import label_app
+    import memory_200
+
+    run = str(tmp_path / "run")
+    memory_200.write_run(run, "button-press-v3", 1, 1, 3)
+    clip = label_app.Clips(run, 25, 10 ** 8).gif(0, 0, 1)
+    assert clip[:6] == b"GIF89a" and len(clip) > 1000
