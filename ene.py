@@ -31,6 +31,7 @@ What the scripts use:
 """
 
 import atexit
+import dataclasses
 import inspect
 import logging
 import math
@@ -92,6 +93,38 @@ def gym_mujoco_class(env_id: str) -> Optional[type]:
     if isinstance(creator, type) and issubclass(creator, MujocoEnv):
         return creator
     return None  # another family, or MuJoCo's v2 and v3, which need mujoco-py
+
+
+# Each suite's SAC settings, taken by the flags a run leaves unset (`suite_settings`). The scripts' flags give the
+# same names. A flag set on the command line always wins.
+SUITE_SETTINGS = {
+    # The R2N paper's, tuned on dm_control (B-Pref's SAC at the paper's width): every committed run used them.
+    "dm_control": dict(episode_length=1000, hidden_dim=1024, hidden_layers=2, batch_size=1024, policy_lr=1e-4,
+                       q_lr=1e-4, alpha_lr=1e-4, init_temperature=0.1, target_update_freq=2, weight_decay=0.0),
+    # B-Pref's Meta-World scripts: 3 x 256, batch 512, learning rates 3e-4 (the temperature's stays 1e-4),
+    # 500-step episodes.
+    "metaworld": dict(episode_length=500, hidden_dim=256, hidden_layers=3, batch_size=512, policy_lr=3e-4,
+                      q_lr=3e-4, alpha_lr=1e-4, init_temperature=0.1, target_update_freq=2, weight_decay=0.0),
+    # ANF's for gymnasium MuJoCo (its utils/utils.py at 6d3bca2): 2 x 256, batch 100, one learning rate 1e-3 with
+    # coupled L2 of 2e-4 (anf_sac.py), a fixed temperature 0.2 (a learning rate of 0 keeps it), targets every step.
+    "gymnasium": dict(episode_length=1000, hidden_dim=256, hidden_layers=2, batch_size=100, policy_lr=1e-3,
+                      q_lr=1e-3, alpha_lr=0.0, init_temperature=0.2, target_update_freq=1, weight_decay=2e-4),
+}
+
+
+def suite(env_id: str) -> str:
+    """The suite of a task's name: `metaworld`, `gymnasium` or `dm_control` (also for a name that is none: the
+    input checks then name it)."""
+    if is_metaworld_name(env_id):
+        return "metaworld"
+    return "gymnasium" if gym.registry.get(env_id) is not None else "dm_control"
+
+
+def suite_settings(args):
+    """A script's `args` with each SAC setting it leaves unset (None) taken from its task's suite
+    (`SUITE_SETTINGS`)."""
+    settings = SUITE_SETTINGS[suite(args.env_id)]
+    return dataclasses.replace(args, **{key: value for key, value in settings.items() if getattr(args, key) is None})
 
 
 def metaworld_tasks() -> list[str]:

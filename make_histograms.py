@@ -66,7 +66,8 @@ def load_actor(path: str) -> tuple:
             f"--checkpoint: {path} was trained with noise ({obs_dim - obs_dim_real} noise features); histograms need "
             f"a noise-free policy: train one with `python sac.py --noise 0`"
         )
-    actor = sac.Actor(obs_dim, act_dim, checkpoint["args"].get("hidden_dim", 1024))
+    actor = sac.Actor(obs_dim, act_dim, checkpoint["args"].get("hidden_dim", 1024),
+                      checkpoint["args"].get("hidden_layers", 2))
     try:
         actor.load_state_dict(checkpoint["actor"])
     except Exception:  # another architecture or width

@@ -45,10 +45,11 @@ class Args:
     """redraw stored observations' noise at each read (ANF's code); off: as stored (B-Pref's)"""
     noise_histograms: Optional[str] = None
     """the `.npz` of real-feature histograms (`bin_edges`, `probs`) for `--noise-type imitate`"""
-    episode_length: int = 1000
-    """environment steps per episode (episodes are truncated, never terminated)"""
+    episode_length: Optional[int] = None
+    """steps per episode, truncated, never terminated; unset: Meta-World 500, else 1000"""
 
-    # Algorithm specific arguments
+    # Algorithm specific arguments. Unset, a SAC setting takes its task's suite's
+    # (`ene.SUITE_SETTINGS`): the paper's on dm_control (DMC), B-Pref's on Meta-World, ANF's on gym.
     total_timesteps: int = 1_000_000
     """total environment steps"""
     buffer_size: int = 1_000_000
@@ -57,24 +58,28 @@ class Args:
     """the discount factor gamma"""
     tau: float = 0.005
     """target smoothing coefficient"""
-    batch_size: int = 1024
-    """the batch size of SAC updates"""
-    hidden_dim: int = 1024
-    """width of the two hidden layers of actor and critics"""
+    batch_size: Optional[int] = None
+    """the batch size of SAC updates; unset: DMC 1024, Meta-World 512, gym 100"""
+    hidden_dim: Optional[int] = None
+    """width of the hidden layers of actor and critics; unset: DMC 1024, Meta-World 256, gym 256"""
+    hidden_layers: Optional[int] = None
+    """hidden layers of actor and critics; unset: DMC 2, Meta-World 3, gym 2"""
     learning_starts: int = 1000
     """steps of uniform random actions before learning starts"""
-    policy_lr: float = 1e-4
-    """the learning rate of the policy network optimizer"""
-    q_lr: float = 1e-4
-    """the learning rate of the Q network optimizer"""
-    alpha_lr: float = 1e-4
-    """the learning rate of the temperature"""
-    init_temperature: float = 0.1
-    """initial entropy temperature alpha (learned, target entropy -|A|)"""
+    policy_lr: Optional[float] = None
+    """the learning rate of the policy; unset: DMC 1e-4, Meta-World 3e-4, gym 1e-3"""
+    q_lr: Optional[float] = None
+    """the learning rate of the Q networks; unset: DMC 1e-4, Meta-World 3e-4, gym 1e-3"""
+    alpha_lr: Optional[float] = None
+    """the temperature's learning rate, 0: fixed; unset: DMC 1e-4, Meta-World 1e-4, gym 0"""
+    init_temperature: Optional[float] = None
+    """initial temperature (target entropy -|A|); unset: DMC 0.1, Meta-World 0.1, gym 0.2"""
+    weight_decay: Optional[float] = None
+    """coupled L2 in the actor's and critics' Adam; unset: DMC 0, Meta-World 0, gym 2e-4"""
     actor_update_freq: int = 1
     """actor and temperature update every this many SAC updates"""
-    target_update_freq: int = 2
-    """target critics update every this many SAC updates"""
+    target_update_freq: Optional[int] = None
+    """target critics update every this many SAC updates; unset: DMC 2, Meta-World 2, gym 1"""
     reset_updates: int = 100
     """SAC updates right after the critic reset of the first feedback round"""
     unsup_steps: int = 9000
@@ -192,18 +197,21 @@ def layer_init(layer: nn.Linear) -> nn.Linear:
     return layer
 
 
+def mlp(in_dim: int, hidden_dim: int, hidden_layers: int, out_dim: int) -> nn.Sequential:
+    """Linear layers and ReLUs, orthogonal weights, zero biases; net[0] is the input layer."""
+    dims = [in_dim] + [hidden_dim] * hidden_layers
+    layers = []
+    for fan_in, fan_out in zip(dims[:-1], dims[1:]):
+        layers += [layer_init(nn.Linear(fan_in, fan_out)), nn.ReLU()]
+    return nn.Sequential(*layers, layer_init(nn.Linear(hidden_dim, out_dim)))
+
+
 class SoftQNetwork(nn.Module):
     """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int):
         super().__init__()
-        self.net = nn.Sequential(
-            layer_init(nn.Linear(obs_dim + act_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, 1)),
-        )
+        self.net = mlp(obs_dim + act_dim, hidden_dim, hidden_layers, 1)
 
     def forward(self, obs, actions):
         return self.net(torch.cat([obs, actions], 1)).squeeze(-1)
@@ -216,15 +224,9 @@ LOG_STD_MIN = -5
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int):
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int):
         super().__init__()
-        self.net = nn.Sequential(
-            layer_init(nn.Linear(obs_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, hidden_dim)),
-            nn.ReLU(),
-            layer_init(nn.Linear(hidden_dim, 2 * act_dim)),
-        )
+        self.net = mlp(obs_dim, hidden_dim, hidden_layers, 2 * act_dim)
 
     def forward(self, obs):
         mean, log_std = self.net(obs).chunk(2, dim=-1)
@@ -579,22 +581,24 @@ class Agent:
 def make_critic(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> tuple:
     """Fresh Q1, Q2, their optimiser and targets (PEBBLE
     resets the critic at the first feedback round)."""
-    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf1 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim, args.hidden_layers).to(device)
+    qf2 = SoftQNetwork(obs_dim, act_dim, args.hidden_dim, args.hidden_layers).to(device)
     # foreach: the multi-tensor Adam, bitwise the CPU's default single-tensor one and faster
     q_optimizer = optim.Adam(
-        list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr, foreach=True
+        list(qf1.parameters()) + list(qf2.parameters()), lr=args.q_lr,
+        weight_decay=args.weight_decay, foreach=True
     )
-    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
-    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim).to(device)
+    qf1_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim, args.hidden_layers).to(device)
+    qf2_target = SoftQNetwork(obs_dim, act_dim, args.hidden_dim, args.hidden_layers).to(device)
     qf1_target.load_state_dict(qf1.state_dict())
     qf2_target.load_state_dict(qf2.state_dict())
     return qf1, qf2, q_optimizer, qf1_target, qf2_target
 
 
 def make_agent(obs_dim: int, act_dim: int, args: Args, device: torch.device) -> Agent:
-    actor = Actor(obs_dim, act_dim, args.hidden_dim).to(device)
-    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr, foreach=True)
+    actor = Actor(obs_dim, act_dim, args.hidden_dim, args.hidden_layers).to(device)
+    actor_optimizer = optim.Adam(actor.parameters(), lr=args.policy_lr,
+                                 weight_decay=args.weight_decay, foreach=True)
     qf1, qf2, q_optimizer, qf1_target, qf2_target = make_critic(obs_dim, act_dim, args, device)
     log_alpha = torch.tensor(math.log(args.init_temperature), device=device, requires_grad=True)
     a_optimizer = optim.Adam([log_alpha], lr=args.alpha_lr)
@@ -838,10 +842,13 @@ def validate_args(args: Args) -> None:
     for flag in (
         "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
         "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
-        "target_update_freq", "diagnostic_transitions", "diagnostic_pairs",
+        "target_update_freq", "hidden_layers", "diagnostic_transitions", "diagnostic_pairs",
     ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
+    for flag in ("policy_lr", "q_lr", "alpha_lr", "weight_decay"):
+        if getattr(args, flag) < 0:
+            raise ValueError(f"--{flag.replace('_', '-')} must be >= 0, got {getattr(args, flag)}")
 
 
 def uses_run(args: Args) -> bool:
@@ -944,7 +951,7 @@ def log_round(writer: SummaryWriter, global_step: int, trained: dict, loop: Loop
 
 
 if __name__ == "__main__":
-    args = tyro.cli(Args)
+    args = ene.suite_settings(tyro.cli(Args))  # unset SAC settings: the task's suite's
     try:  # bad input fails here, with one line, before any output is written
         validate_args(args)
         env = ene.make_env(args.env_id, args.seed, args.noise, args.noise_type,
