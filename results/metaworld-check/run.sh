@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Issue 70's learning check (README.md here): sac.py with the true reward on drawer-open-v3 in the ENE at noise 0.9,
-# against a random policy. 100 000 SAC updates on one core: about an hour.
+# against a random policy. 100 000 SAC updates on one core: about 2.5 hours (--resumable: it carries across sessions;
+# run it again to resume).
 set -euo pipefail
 cd "$(dirname "$0")"
 export OMP_NUM_THREADS=1 PYTHONPATH=../.. MUJOCO_GL=${MUJOCO_GL:-egl}
@@ -25,7 +26,7 @@ print(f"random policy: success rate {np.mean(successes):.2f}, mean return {np.me
 PY
 
 python ../../sac.py --env-id drawer-open-v3 --noise 0.9 --total-timesteps 100000 --eval-freq 10000 --eval-episodes 10 \
-    --threads 1 --no-cuda --seed 1 --run-name sac-drawer-open-v3
+    --threads 1 --no-cuda --seed 1 --run-name sac-drawer-open-v3 --resumable
 
 # The verdict: the mean success rate of the last 3 evaluations (80 000, 90 000 and 100 000 steps) against 0.5.
 python - <<'PY'
