@@ -3,17 +3,18 @@
 
 Reads every run under `--log-dirs` (searched recursively; a run is one `events.out.tfevents.*` file, the scripts write
 one per run), with all points (no TensorBoard subsampling), and groups runs by (task, noise, budget, method) read from
-the logged hyperparameter table: task = `env_id`, method = `exp_name`, budget = `max_feedback` (absent for SAC
-oracles). For every group it writes, as Markdown and CSV, three tables in the layout of the paper's appendix tables:
-the primary metric (the mean of each run's last `--primary-last` (3) evaluation returns), the final return (last
-`eval/episodic_return`) and the AUC (sum of all evaluation returns); each as mean ± standard error over seeds (SE =
-sample std (ddof 1) / sqrt(n)), the number of seeds and, against a baseline of the same task, noise and budget, the
-one-tailed Welch's t-test p-value (`scipy.stats.ttest_ind(method, baseline, equal_var=False, alternative="greater")`;
-`*` where p < 0.05), the one-tailed permutation-test p-value of the difference in means (exact over every relabeling
-of the seeds up to `PERMUTATIONS` of them, else that many random ones) and the difference in means with its
-percentile bootstrap 95% CI (`BOOTSTRAP_RESAMPLES` resamples of each arm; both with a fixed seed, so the tables
-regenerate identically). It also writes learning curves per task (mean ± SE, one colour per method) and
-connectivity plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds). Where runs log
+the logged hyperparameter table: task = `env_id`, method = `exp_name`, budget = `max_feedback` (absent for SAC oracles).
+For every group it writes, as Markdown and CSV, three tables in the layout of the paper's appendix tables: the primary
+metric (the mean of each run's last `--primary-last` (3) evaluation returns), the final return (last
+`eval/episodic_return`) and the AUC (sum of all evaluation returns), and a fourth where the runs log a success rate
+(Meta-World): the mean of each run's last `--primary-last` `eval/success_rate`; each as mean ± standard error over seeds
+(SE = sample std (ddof 1) / sqrt(n)), the number of seeds and, against a baseline of the same task, noise and budget,
+the one-tailed Welch's t-test p-value (`scipy.stats.ttest_ind(method, baseline, equal_var=False,
+alternative="greater")`; `*` where p < 0.05), the one-tailed permutation-test p-value of the difference in means (exact
+over every relabeling of the seeds up to `PERMUTATIONS` of them, else that many random ones) and the difference in means
+with its percentile bootstrap 95% CI (`BOOTSTRAP_RESAMPLES` resamples of each arm; both with a fixed seed, so the tables
+regenerate identically). It also writes learning curves per task (mean ± SE, one colour per method) and connectivity
+plots (relevant vs noise degree over time for each sparse network, mean ± SE over seeds). Where runs log
 `features/{net}/relevant_weight_frac`, it writes `features.md` (its final value per group and network, mean ± SE, with
 the chance level) and one plot per task and setting (its curve per method and network, chance dotted).
 
@@ -41,6 +42,7 @@ Choices where the paper is silent:
   event files (copied together, or written by an older version that could share a folder within one second) has
   each used separately, with a note.
 """
+import contextlib
 import csv
 import glob
 import itertools
@@ -99,7 +101,7 @@ RUN_SPECIFIC_KEYS = frozenset({
 # existed before `--teacher`, and the noise was redrawn before `--noise-resample`), so that old and new runs of one
 # configuration stay one group.
 ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None, "compile": False, "tf32": False,
-                       "noise_resample": True}
+                       "noise_resample": True, "hidden_layers": 2, "weight_decay": 0.0}
 # Flags that change a run's numerics (issue 19), and the flag that makes the noise redrawn or stored (two different
 # environments): runs that differ in one are never averaged together or compared.
 NUMERICS_KEYS = ("compile", "tf32")
@@ -107,6 +109,7 @@ VARIANT_KEYS = ("noise_resample",)
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type")
 EVAL_TAG = "eval/episodic_return"
+SUCCESS_TAG = "eval/success_rate"  # beside the return on a task with a success flag (Meta-World)
 SPARSE_TAG = re.compile(r"^sparse/(?P<net>[^/]+)/(?P<metric>relevant_degree|noise_degree)$")
 FEATURE_TAG = re.compile(r"^features/(?P<net>[^/]+)/relevant_weight_frac$")  # every script; its chance: `.../chance`
 PERMUTATIONS = 200_000  # the permutation test is exact up to this many relabelings, else samples this many
@@ -163,6 +166,7 @@ class Group:
     runs: list
     steps: np.ndarray = None
     curves: np.ndarray = None  # (seeds, steps)
+    success_curves: np.ndarray = None  # (seeds, steps) of `SUCCESS_TAG`, where every run logs it
     notes: list = field(default_factory=list)
 
     @property
@@ -174,8 +178,12 @@ class Group:
         return np.where(np.isfinite(self.curves), self.curves, 0.0).sum(axis=1)
 
     def values(self, metric: str, last: int) -> np.ndarray:
-        """Per seed: the mean of the `last` evaluations (`primary`), the final return or the AUC; a run stopped by a
-        non-finite value, over its finite ones."""
+        """Per seed: the mean of the `last` evaluations (`primary`), the final return, the AUC or the mean of the
+        `last` success rates (`success`, NaN without them); a run stopped by a non-finite value, over its finite ones."""
+        if metric == "success":
+            if self.success_curves is None:
+                return np.full(len(self.runs), np.nan)
+            return np.array([row[np.isfinite(row)][-last:].mean() for row in self.success_curves])
         if metric != "primary":
             return getattr(self, metric)
         primary = self.curves[:, -last:].mean(axis=1)
@@ -395,16 +403,18 @@ def make_groups(runs) -> list:
         group.notes.extend(f"{os.path.relpath(r.path, os.path.dirname(r.folder))}: {r.note}" for r in members if r.note)
         group.steps = common
         group.curves = np.stack([curve_at(r, common) for r in members])
+        if all(SUCCESS_TAG in r.scalars for r in members):
+            group.success_curves = np.stack([curve_at(r, common, SUCCESS_TAG) for r in members])
         groups.append(group)
     return groups
 
 
-def curve_at(run: Run, steps: np.ndarray) -> np.ndarray:
-    """The run's evaluation returns at `steps`; NaN after a non-finite value stopped it."""
-    values = run.scalars[EVAL_TAG][1]
-    if not run.stopped:
-        return values[np.searchsorted(run.eval_steps, steps)]
-    returns = dict(zip(run.eval_steps.tolist(), values.tolist()))
+def curve_at(run: Run, steps: np.ndarray, tag: str = EVAL_TAG) -> np.ndarray:
+    """The run's evaluation returns (or another evaluation tag) at `steps`; NaN after a non-finite value stopped it."""
+    tag_steps, values = run.scalars[tag]
+    if not run.stopped and np.isin(steps, tag_steps).all():
+        return values[np.searchsorted(tag_steps, steps)]
+    returns = dict(zip(tag_steps.tolist(), values.tolist()))
     return np.array([returns.get(step, np.nan) for step in steps.tolist()])
 
 
@@ -497,7 +507,7 @@ def parse_baselines(args: Args) -> dict:
 
 
 def table_rows(groups, args: Args) -> list:
-    """One row per group: the statistics of every table (`METRICS`), against the group's baseline."""
+    """One row per group: the statistics of every table (`metrics_of`), against the group's baseline."""
     overrides = parse_baselines(args)
     by_key = {g.key: g for g in groups}
     rows = []
@@ -510,7 +520,7 @@ def table_rows(groups, args: Args) -> list:
         if len(g.steps) < args.primary_last:  # unfinished runs aligned on fewer evaluations than the metric asks
             row["notes"].append(f"primary metric over its {len(g.steps)} evaluations, fewer than --primary-last "
                                 f"{args.primary_last}")
-        for metric in METRICS:
+        for metric in metrics_of(groups):
             row[f"{metric}_mean"], row[f"{metric}_se"] = mean_se(g.values(metric, args.primary_last))
             row[f"{metric}_p"] = row[f"{metric}_perm_p"] = row[f"{metric}_diff"] = float("nan")
             row[f"{metric}_ci"], row[f"{metric}_exact"] = (float("nan"), float("nan")), True
@@ -529,7 +539,7 @@ def table_rows(groups, args: Args) -> list:
                                     f"({', '.join(variant)}); runs of different environments are never compared")
             else:
                 row["baseline"] = base_name
-                for metric in METRICS:
+                for metric in metrics_of(groups):
                     ours, theirs = g.values(metric, args.primary_last), base.values(metric, args.primary_last)
                     row[f"{metric}_p"] = welch_p(ours, theirs, args.alternative)
                     row[f"{metric}_perm_p"], row[f"{metric}_exact"] = permutation_p(ours, theirs, args.alternative)
@@ -579,7 +589,15 @@ METRICS = {  # metric: (title, file name, definition); `primary` first: the stud
     "primary": ("Primary Metric", "primary", "the mean of the last {n} evaluation returns of each run (the primary metric)"),
     "final": ("Final Return", "final_return", "the last `eval/episodic_return` of each run"),
     "auc": ("AUC", "auc", "the sum of the evaluation returns of each run"),
+    "success": ("Success Rate", "success_rate", "the mean of the last {n} `eval/success_rate` of each run (the share "
+                "of its evaluation episodes that succeed at some step: Meta-World's tasks)"),
 }
+
+
+def metrics_of(groups) -> dict:
+    """The tables an analysis writes: `METRICS`, the success rate only where a group's runs all log it."""
+    with_success = any(g.success_curves is not None for g in groups)
+    return {metric: spec for metric, spec in METRICS.items() if metric != "success" or with_success}
 
 
 def table_lines(rows, metric: str, args: Args) -> list:
@@ -715,10 +733,14 @@ def runs_lines(groups, rows) -> list:
 
 
 def write_tables(rows, groups, runs, args: Args):
-    """`primary.md/.csv`, `final_return.md/.csv`, `auc.md/.csv` (the paper's layout), `runs.md` (every used run with
-    its diagnostics) and `runs.csv` (every run found and its status)."""
+    """`primary.md/.csv`, `final_return.md/.csv`, `auc.md/.csv` (the paper's layout), `success_rate.md/.csv` where runs
+    log it, `runs.md` (every used run with its diagnostics) and `runs.csv` (every run found and its status)."""
     os.makedirs(args.output_dir, exist_ok=True)
-    for metric, (title, name, _) in METRICS.items():
+    if "success" not in metrics_of(groups):  # an earlier analysis's, of runs that logged it
+        for kind in ("md", "csv"):
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(args.output_dir, f"{METRICS['success'][1]}.{kind}"))
+    for metric, (title, name, _) in metrics_of(groups).items():
         lines = [f"# {title}", ""] + table_lines(rows, metric, args) + [""] + skipped_lines(runs)
         with open(os.path.join(args.output_dir, f"{name}.md"), "w") as f:
             f.write("\n".join(lines) + "\n")
@@ -780,7 +802,7 @@ def readme_block(rows, groups, runs, args: Args, pngs: list) -> list:
     curves = [p for p in pngs if os.path.basename(os.path.dirname(p)) == "curves"]
     lines = [f"Written by `analyze.py` from {', '.join(f'`{d}`' for d in args.log_dirs)}. {RUNS_DEFINITION}", ""]
     lines += runs_lines(groups, rows)
-    for metric in METRICS:
+    for metric in metrics_of(groups):
         lines += [""] + table_lines(rows, metric, args)
     lines += [""] + skipped_lines(runs)
     for png in curves:
@@ -960,7 +982,7 @@ def main(args: Args) -> int:
         return 1
     rows = table_rows(groups, args)
     write_tables(rows, groups, runs, args)
-    tables = [f"{name}.{kind}" for _, name, _ in METRICS.values() for kind in ("md", "csv")]
+    tables = [f"{name}.{kind}" for _, name, _ in metrics_of(groups).values() for kind in ("md", "csv")]
     written = [os.path.join(args.output_dir, f) for f in tables + ["runs.md", "runs.csv"]]
     if os.path.exists(os.path.join(args.output_dir, "features.md")):
         written.append(os.path.join(args.output_dir, "features.md"))

@@ -335,6 +335,16 @@ def fail(message: str):
     raise SystemExit(f"benchmark: error: {message}")
 
 
+def check_task(env_id: str):
+    """Fail with ene's one line if no script can make `env_id` here (Meta-World's without metaworld installed)."""
+    import ene
+
+    try:
+        ene.check_env_args(env_id, 0.0)
+    except ValueError as error:
+        fail(str(error).replace("--env-id", "--env-ids", 1))
+
+
 def grid(args: Args, preset: Optional[Preset]) -> tuple:
     """(settings, methods, seeds) of one part of the preset (or of the flags alone) with the flags' replacements."""
     methods = tuple(args.methods or (preset.methods if preset else ()))
@@ -354,6 +364,8 @@ def grid(args: Args, preset: Optional[Preset]) -> tuple:
             if (noise is None and not args.noises) or (budget is None and not args.budgets):
                 fail(f"{env} is not a paper task: give --noises and --budgets")
             settings.append((env, noise, budget))
+    for env in dict.fromkeys(s[0] for s in settings):  # a misspelt task fails here, not in each of its runs
+        check_task(env)
     if args.noises:
         settings = [(env, noise, budget) for env, _, budget in settings for noise in args.noises]
     if args.budgets:

@@ -13,8 +13,7 @@ Choices where the paper is silent, and each step in detail: the docs page.
 # every input weight of each member is zeroed w.p. `dropconnect_p` (0.2), fresh per member and pass,
 # and kept weights scale by 1/(1 - p). Relabelling, the per-step reward and query scoring use the
 # full weights. Actor and critics are dense. Its deviations from the paper: the docs page.
-import importlib
-import importlib.util
+import importlib.util  # also binds importlib
 import math
 import os
 import random
@@ -41,7 +40,7 @@ class Args:
 
     # Environment arguments
     env_id: str = "cheetah-run"
-    """the task: dm_control as domain-task (cheetah-run), or gymnasium MuJoCo (Hopper-v5, ...)"""
+    """the task: dm_control (cheetah-run), gymnasium MuJoCo (Hopper-v5), Meta-World (reach-v3)"""
     noise: float = 0.9
     """fraction of all observation features that are noise, in [0, 1)"""
     noise_type: Literal["gaussian", "imitate"] = "gaussian"
@@ -53,8 +52,8 @@ class Args:
     episode_length: Optional[int] = None
     """steps per episode, truncated, never terminated; unset: Meta-World 500, else 1000"""
 
-    # Algorithm specific arguments. Unset, a SAC setting takes its task's suite's
-    # (`ene.SUITE_SETTINGS`): the paper's on dm_control (DMC), B-Pref's on Meta-World, ANF's on gym.
+    # Algorithm specific arguments. An unset SAC setting is its suite's (`ene.SUITE_SETTINGS`):
+    # the paper's on dm_control (DMC), B-Pref's on Meta-World, CleanRL's on gym.
     total_timesteps: int = 1_000_000
     """total environment steps"""
     buffer_size: int = 1_000_000
@@ -64,7 +63,7 @@ class Args:
     tau: float = 0.005
     """target smoothing coefficient"""
     batch_size: Optional[int] = None
-    """the batch size of SAC updates; unset: DMC 1024, Meta-World 512, gym 100"""
+    """the batch size of SAC updates; unset: DMC 1024, Meta-World 512, gym 256"""
     hidden_dim: Optional[int] = None
     """width of the hidden layers of actor and critics; unset: DMC 1024, Meta-World 256, gym 256"""
     hidden_layers: Optional[int] = None
@@ -72,15 +71,15 @@ class Args:
     learning_starts: int = 1000
     """steps of uniform random actions before learning starts"""
     policy_lr: Optional[float] = None
-    """the learning rate of the policy; unset: DMC 1e-4, Meta-World 3e-4, gym 1e-3"""
+    """the learning rate of the policy; unset: DMC 1e-4, Meta-World 3e-4, gym 3e-4"""
     q_lr: Optional[float] = None
     """the learning rate of the Q networks; unset: DMC 1e-4, Meta-World 3e-4, gym 1e-3"""
     alpha_lr: Optional[float] = None
-    """the temperature's learning rate, 0: fixed; unset: DMC 1e-4, Meta-World 1e-4, gym 0"""
+    """the temperature's learning rate, 0: fixed; unset: DMC 1e-4, Meta-World 1e-4, gym 1e-3"""
     init_temperature: Optional[float] = None
-    """initial temperature (target entropy -|A|); unset: DMC 0.1, Meta-World 0.1, gym 0.2"""
-    weight_decay: Optional[float] = None
-    """coupled L2 in the actor's and critics' Adam; unset: DMC 0, Meta-World 0, gym 2e-4"""
+    """initial temperature (target entropy -|A|); unset: DMC 0.1, Meta-World 0.1, gym 1"""
+    weight_decay: float = 0.0
+    """coupled L2 in the actor's and critics' Adam (ANF's on gym: 2e-4)"""
     actor_update_freq: int = 1
     """actor and temperature update every this many SAC updates"""
     target_update_freq: Optional[int] = None
@@ -140,9 +139,8 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched. None of them changes
-    # what it learns, but --compile and --tf32 change its floating-point numerics.
-    # And --teacher and --preferences say where its labels come from.
+    # Run settings: where the run writes, what it keeps, how it is watched. Only --compile and
+    # --tf32 change its numerics (analyze.py never mixes them). Labels: --teacher, --preferences.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True
@@ -150,12 +148,9 @@ class Args:
     cuda: bool = True
     """if toggled, cuda will be used when available"""
     compile: bool = False
-    """torch.compile the SAC steps (critic, actor and temperature, target). Faster on a GPU.
-    Numerics are within float tolerance of eager.
-    analyze.py never averages or compares runs with other numerics flags."""
+    """torch.compile the SAC steps: faster on a GPU, numerics within float tolerance of eager"""
     tf32: bool = False
-    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores).
-    Faster; numerics differ from FP32."""
+    """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, other numerics"""
     cuda_graph: bool = False
     """replay the SAC steps' gradients as CUDA graphs (GPU only): faster, eager's numbers"""
     parallel_eval: bool = False
@@ -200,25 +195,20 @@ class Args:
 
 
 # ALGO LOGIC: the agent's networks
-def layer_init(layer: nn.Linear) -> nn.Linear:
-    nn.init.orthogonal_(layer.weight)
-    nn.init.zeros_(layer.bias)
-    return layer
-
-
 def mlp(in_dim: int, hidden_dim: int, hidden_layers: int, out_dim: int) -> nn.Sequential:
     """Linear layers and ReLUs, orthogonal weights, zero biases; net[0] is the input layer."""
-    dims = [in_dim] + [hidden_dim] * hidden_layers
-    layers = []
+    dims, layers = [in_dim] + [hidden_dim] * hidden_layers + [out_dim], []
     for fan_in, fan_out in zip(dims[:-1], dims[1:]):
-        layers += [layer_init(nn.Linear(fan_in, fan_out)), nn.ReLU()]
-    return nn.Sequential(*layers, layer_init(nn.Linear(hidden_dim, out_dim)))
+        layers += [nn.Linear(fan_in, fan_out), nn.ReLU()]
+        nn.init.orthogonal_(layers[-2].weight)
+        nn.init.zeros_(layers[-2].bias)
+    return nn.Sequential(*layers[:-1])  # no ReLU after the output layer
 
 
 class SoftQNetwork(nn.Module):
     """Q(s, a): MLP on [obs, action]; its first Linear is the input layer."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int):
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int = 2):
         super().__init__()
         self.net = mlp(obs_dim + act_dim, hidden_dim, hidden_layers, 1)
 
@@ -233,7 +223,7 @@ LOG_STD_MIN = -5
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; log-std squashed into [LOG_STD_MIN, LOG_STD_MAX]."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int):
+    def __init__(self, obs_dim: int, act_dim: int, hidden_dim: int, hidden_layers: int = 2):
         super().__init__()
         self.net = mlp(obs_dim, hidden_dim, hidden_layers, 2 * act_dim)
 

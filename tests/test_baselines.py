@@ -249,7 +249,7 @@ def test_l1_pebble_keeps_agent_dense_and_default_lambda():
     assert l1_pebble.Args.l1_lambda == 0.01
     assert not hasattr(l1_pebble, "SparseOptimizer")
     with pytest.raises(ValueError, match="--l1-lambda"):
-        l1_pebble.validate_args(l1_pebble.Args(l1_lambda=-1.0))
+        l1_pebble.validate_args(l1_pebble.ene.suite_settings(l1_pebble.Args(l1_lambda=-1.0)))
 
 
 # ---------------------------------------------------------------- DropConnect on the reward input layers

@@ -58,7 +58,7 @@ def test_compiled_steps_match_eager_within_tolerance(script, monkeypatch):
     overrides = dict(hidden_dim=32, batch_size=16)
     names = {field.name for field in dataclasses.fields(module.Args)}
     overrides.update({name: 2 for name in ("agent_topology_period", "topology_period") if name in names})
-    args = module.Args(**overrides)
+    args = module.ene.suite_settings(module.Args(**overrides))
     torch.manual_seed(0)
     eager_agent = module.make_agent(obs_dim, act_dim, args, torch.device("cpu"))
     compiled_agent = copy.deepcopy(eager_agent)

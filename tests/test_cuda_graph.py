@@ -18,6 +18,7 @@ from test_numerics import ARGS
 from test_scripts import ROOT, run_script, scalars
 
 sys.path.insert(0, ROOT)
+import ene  # noqa: E402
 from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU")
 STEPS = ("critic_gradients", "actor_gradients", "target_update")
@@ -42,7 +43,7 @@ def test_captured_run_equals_eager(script, tmp_path):
 
 
 def tiny_agent(module, device):
-    args = module.Args(hidden_dim=32, batch_size=16)
+    args = ene.suite_settings(module.Args(hidden_dim=32, batch_size=16))
     torch.manual_seed(0)
     return module.make_agent(6, 2, args, device), args
 
@@ -251,7 +252,7 @@ def test_each_step_is_captured_once(script, monkeypatch, fake_cuda):
     module = importlib.import_module(script[:-3])
     steps = captured(module, monkeypatch)
     topology = {"agent_topology_period": 5} if "agent_topology_period" in module.Args.__dataclass_fields__ else {}
-    args = module.Args(hidden_dim=32, batch_size=16, **topology)
+    args = ene.suite_settings(module.Args(hidden_dim=32, batch_size=16, **topology))
     torch.manual_seed(0)
     agent, loop = module.make_agent(6, 2, args, torch.device("cpu")), module.Loop()
     for step in range(12):
@@ -261,7 +262,7 @@ def test_each_step_is_captured_once(script, monkeypatch, fake_cuda):
 
 def reset_critic(agent):
     module = importlib.import_module("pebble")
-    critic = module.make_critic(6, 2, module.Args(hidden_dim=32), torch.device("cpu"))
+    critic = module.make_critic(6, 2, ene.suite_settings(module.Args(hidden_dim=32)), torch.device("cpu"))
     agent.qf1, agent.qf2, agent.q_optimizer, agent.qf1_target, agent.qf2_target = critic
 
 

@@ -1,6 +1,7 @@
 """Tests of ene.py, the Extremely Noisy Environment (spec: ALGORITHMS.md section 1)."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -712,3 +713,46 @@ def test_observation_that_is_not_a_flat_box_is_refused(task_class, monkeypatch):
     assert ene.check_env_args(env_id, 0.9) is None  # a MuJoCo task: its observation shows once it is made
     message = _assert_one_line_value_error(lambda: ene.make_env(env_id, 0, noise=0.9), f"--env-id {env_id}")
     assert "flat Box" in message, message
+
+
+SCRIPTS = ["sac.py", "anf_sac.py", "pebble.py", "r2n_pebble.py", "set_pebble.py", "static_pebble.py", "l1_pebble.py",
+           "dropconnect_pebble.py", "surf.py", "r2n_surf.py", "rune.py", "r2n_rune.py"]
+
+
+def test_suite_settings_fill_only_the_unset_flags_from_the_tasks_suite():
+    """Each suite's SAC settings for the flags a run leaves unset; a flag that is set wins, 0 included; dm_control keeps
+    the paper's settings, every committed run's."""
+    import sac
+
+    assert ene.suite("cheetah-run") == "dm_control" and ene.suite("HalfCheetah-v5") == "gymnasium"
+    assert ene.suite("drawer-open-v3") == "metaworld"
+    paper = dict(episode_length=1000, hidden_dim=1024, hidden_layers=2, batch_size=1024, policy_lr=1e-4, q_lr=1e-4,
+                 alpha_lr=1e-4, init_temperature=0.1, target_update_freq=2)
+    assert ene.SUITE_SETTINGS["dm_control"] == paper
+    for env_id in ("cheetah-run", "HalfCheetah-v5", "drawer-open-v3"):
+        settings = ene.SUITE_SETTINGS[ene.suite(env_id)]
+        assert set(settings) == set(paper)
+        args = ene.suite_settings(sac.Args(env_id=env_id))
+        assert {key: getattr(args, key) for key in settings} == settings
+        explicit = ene.suite_settings(sac.Args(env_id=env_id, hidden_dim=7, alpha_lr=0.0))
+        assert (explicit.hidden_dim, explicit.alpha_lr, explicit.batch_size) == (7, 0.0, settings["batch_size"])
+    assert ene.SUITE_SETTINGS["gymnasium"] != ene.SUITE_SETTINGS["metaworld"] != paper
+
+
+def unset_docstrings(path: str) -> dict:
+    """{flag: (DMC, Meta-World, gym)} from a script's Args docstrings that end in `unset: DMC a, Meta-World b, gym c`."""
+    lines = open(os.path.join(os.path.dirname(ene.__file__), path)).read().split("\n")
+    found = {}
+    for field, doc in zip(lines, lines[1:]):
+        match = re.search(r"unset: DMC (\S+), Meta-World (\S+), gym (\S+)\"\"\"$", doc)
+        if match:
+            found[field.split(":")[0].strip()] = tuple(float(value) for value in match.groups())
+    return found
+
+
+@pytest.mark.parametrize("script", SCRIPTS)
+def test_every_scripts_help_gives_the_suites_settings(script):
+    """`--help` says what an unset SAC flag becomes on each suite: each docstring matches `ene.SUITE_SETTINGS`."""
+    expected = {key: tuple(float(ene.SUITE_SETTINGS[suite][key]) for suite in ("dm_control", "metaworld", "gymnasium"))
+                for key in ene.SUITE_SETTINGS["dm_control"] if key != "episode_length"}
+    assert unset_docstrings(script) == expected

@@ -170,7 +170,7 @@ def test_adam_capture_host_counts_move_by_one_update(tmp_path):
     sys.path.insert(0, ROOT)
     import r2n_pebble
 
-    args = r2n_pebble.Args(hidden_dim=16, batch_size=8)
+    args = r2n_pebble.ene.suite_settings(r2n_pebble.Args(hidden_dim=16, batch_size=8))
     agent, loop = r2n_pebble.make_agent(5, 2, args, r2n_pebble.torch.device("cpu")), r2n_pebble.Loop()
     torch = r2n_pebble.torch
     batch = r2n_pebble.Batch(torch.randn(8, 5), torch.rand(8, 2), torch.randn(8), torch.randn(8, 5), torch.zeros(8),

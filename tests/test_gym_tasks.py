@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+import ene
 import test_resume
 from test_layout import ORACLES, PBRL
 from test_scripts import DEVICE, run_script, scalars
@@ -75,6 +76,9 @@ def test_smoke_reaches_every_phase(script, env_id, tmp_path):
     checkpoint = torch.load(tmp_path / "runs" / "smoke" / "smoke.cleanrl_model", weights_only=False)
     assert (checkpoint["obs_dim_real"], checkpoint["obs_dim"], checkpoint["act_dim"]) == (real, total, actions)
     assert checkpoint["global_step"] == 300
+    # the SAC settings the run left unset are its suite's (3 hidden layers on Meta-World); the flags it set win
+    settings = {**ene.SUITE_SETTINGS[ene.suite(env_id)], "hidden_dim": 32, "batch_size": 32, "episode_length": 50}
+    assert {key: checkpoint["args"][key] for key in settings} == settings
 
 
 # States every 50 steps from 50 on, through the random steps, pre-training, the feedback round at 200 and the SAC

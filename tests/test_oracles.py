@@ -344,7 +344,7 @@ def _blocks(source: str, names: list) -> dict:
     return found
 
 
-SAC_BLOCKS = ["read_noisy", "Batch", "layer_init", "SoftQNetwork", "Actor", "evaluate", "make_critic", "sac_update"]
+SAC_BLOCKS = ["read_noisy", "Batch", "mlp", "SoftQNetwork", "Actor", "evaluate", "make_critic", "sac_update"]
 SPARSE_BLOCKS = ["random_mask", "top_k_random_ties", "rigl_update_", "SparseOptimizer", "connectivity"]
 
 

@@ -671,19 +671,19 @@ def test_select_queries_uniform_returns_requested_number():
 )
 def test_validate_args_errors_name_the_flag(kwargs, flag):
     with pytest.raises(ValueError, match=flag):
-        pebble.validate_args(pebble.Args(**kwargs))
+        pebble.validate_args(pebble.ene.suite_settings(pebble.Args(**kwargs)))
 
 
 @pytest.mark.parametrize("max_feedback, expected", [(1000, 10), (50, 1), (250, 2), (1, 1), (10_000, 100)])
 def test_validate_args_queries_per_round_default(max_feedback, expected):
-    args = pebble.Args(max_feedback=max_feedback)
+    args = pebble.ene.suite_settings(pebble.Args(max_feedback=max_feedback))
     assert args.queries_per_round is None
     pebble.validate_args(args)
     assert args.queries_per_round == expected
-    explicit = pebble.Args(max_feedback=max_feedback, queries_per_round=7)
+    explicit = pebble.ene.suite_settings(pebble.Args(max_feedback=max_feedback, queries_per_round=7))
     pebble.validate_args(explicit)
     assert explicit.queries_per_round == 7
 
 
 def test_validate_args_defaults_pass():
-    pebble.validate_args(pebble.Args())
+    pebble.validate_args(pebble.ene.suite_settings(pebble.Args()))

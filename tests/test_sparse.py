@@ -418,7 +418,7 @@ def test_relevant_weight_frac_hand_built():
 def test_input_layers_and_their_weight_shares():
     """Every network that reads observations is logged, by name, with the chance level of its own input."""
     obs_dim_real, obs_dim, act_dim = 2, 5, 2
-    args = P.Args(hidden_dim=8)
+    args = P.ene.suite_settings(P.Args(hidden_dim=8))
     agent = P.make_agent(obs_dim, act_dim, args, CPU)
     reward_model = P.RewardEnsemble(obs_dim + act_dim, 4, 1, 3)
     layers = D.input_layers(agent)

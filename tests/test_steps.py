@@ -99,7 +99,7 @@ def test_the_actor_step_gives_the_actor_its_gradients_and_leaves_the_critics_alo
     the critics' `.grad` stays as the critic's step left it (a full pass would add the actor loss's gradients)."""
     module = importlib.import_module(script[:-3])
     torch.manual_seed(0)
-    agent = module.make_agent(OBS_DIM, ACT_DIM, module.Args(hidden_dim=HIDDEN), torch.device("cpu"))
+    agent = module.make_agent(OBS_DIM, ACT_DIM, module.ene.suite_settings(module.Args(hidden_dim=HIDDEN)), torch.device("cpu"))
     unused = [torch.zeros(1)] * len(module.Batch._fields)
     data = module.Batch(*unused)._replace(obs=torch.randn(8, OBS_DIM))
     critics = list(agent.qf1.parameters()) + list(agent.qf2.parameters())

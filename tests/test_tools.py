@@ -519,6 +519,11 @@ def test_free_grids_and_overrides():
         grid(methods=("no_such_method",), env_ids=("cheetah-run",))
     with pytest.raises(SystemExit, match="not a paper task"):
         grid(methods=("pebble",), env_ids=("finger-spin",))
+    with pytest.raises(SystemExit, match=r"--env-ids 'drawer-opn-v3' is neither"):  # before any run starts
+        grid(methods=("pebble",), env_ids=("drawer-opn-v3",), noises=(0.9,), budgets=(1000,))
+    if importlib.util.find_spec("metaworld") is not None:  # the launcher takes Meta-World's tasks
+        (run,) = grid(methods=("pebble",), env_ids=("drawer-open-v3",), noises=(0.9,), budgets=(1000,))
+        assert run.run_id == "pebble__drawer-open-v3__noise0.9__budget1000__seed1"
 
 
 def test_sac_oracles_get_no_budget(tmp_path):
@@ -1469,6 +1474,38 @@ def test_analyze_reports_relevant_weight_frac_where_runs_log_it(tmp_path):
     assert not (out / "features.md").exists()
 
 
+
+def test_analyze_tables_the_success_rate_where_runs_log_it(tmp_path):
+    """`success_rate.md/.csv`: the mean of each run's last `--primary-last` success rates, mean ± SE over seeds, tested
+    against the baseline; written only where a group's runs log `eval/success_rate`, and gone when no run does. A run
+    recorded before `--hidden-layers` and `--weight-decay` existed groups with one that records their defaults."""
+    log_dir = tmp_path / "runs"
+    rates = {("pebble", 1): [0.0, 0.1, 0.2, 0.3, 0.4], ("pebble", 2): [0.0, 0.0, 0.1, 0.1, 0.2],
+             ("r2n_pebble", 1): [0.0, 0.3, 0.6, 0.8, 1.0], ("r2n_pebble", 2): [0.1, 0.4, 0.5, 0.7, 0.9]}
+    for (method, seed), per_step in rates.items():
+        new_flags = dict(hidden_layers=2, weight_decay=0.0) if seed == 2 else {}
+        path = write_run(str(log_dir), "drawer-open-v3", 0.9, 1000, method, seed, [1.0, 2.0, 3.0, 4.0, 5.0],
+                         **new_flags)
+        writer = SummaryWriter(path)
+        for step, rate in zip(STEPS, per_step):
+            writer.add_scalar("eval/success_rate", rate, step)
+        writer.close()
+    out = tmp_path / "analysis"
+    assert analyze.main(analyze.Args(log_dirs=(str(log_dir),), output_dir=str(out), baseline="pebble")) == 0
+    with open(out / "success_rate.csv") as f:
+        rows = {row["method"]: row for row in csv.DictReader(f)}
+    assert rows["r2n_pebble"]["seeds"] == rows["pebble"]["seeds"] == "2"
+    last3 = {key: np.mean(np.float32(per_step[-3:])) for key, per_step in rates.items()}  # TensorBoard's float32
+    for method in ("pebble", "r2n_pebble"):
+        mean, se = analyze.mean_se([last3[(method, 1)], last3[(method, 2)]])
+        assert float(rows[method]["mean"]) == pytest.approx(mean) and float(rows[method]["se"]) == pytest.approx(se)
+    assert rows["r2n_pebble"]["baseline"] == "pebble" and 0 < float(rows["r2n_pebble"]["p_value"]) < 0.05
+    assert "# Success Rate" in (out / "success_rate.md").read_text()
+    older = tmp_path / "older"
+    write_run(str(older), "cheetah-run", 0.9, 1000, "pebble", 1, [1.0, 2.0, 3.0, 4.0, 5.0])
+    assert analyze.main(analyze.Args(log_dirs=(str(older),), output_dir=str(out), baseline="pebble")) == 0
+    assert not (out / "success_rate.md").exists() and not (out / "success_rate.csv").exists()
+
 def stored_noise_module(name):
     """results/stored-noise/{name}.py, imported."""
     spec = importlib.util.spec_from_file_location(f"stored_noise_{name}",
@@ -1575,7 +1612,7 @@ def test_noise_sensitivity_is_zero_for_a_policy_blind_to_the_noise(tmp_path):
     import sac
     import torch
 
-    args = sac.Args(env_id="cheetah-run", noise=0.9, hidden_dim=16)
+    args = sac.ene.suite_settings(sac.Args(env_id="cheetah-run", noise=0.9, hidden_dim=16))
     obs_dim, act_dim = 171, 6
     torch.manual_seed(0)
     agent = sac.make_agent(obs_dim, act_dim, args, torch.device("cpu"))
@@ -1853,7 +1890,7 @@ def preset_differences(preset: str, folder: str) -> list:
 
     (run,) = [r for r in benchmark.expand(benchmark.Args(preset=preset)) if r.run_id == os.path.basename(folder)]
     module = importlib.import_module(os.path.basename(run.command[1])[:-3])
-    args = tyro.cli(module.Args, args=list(run.command[2:]))
+    args = module.ene.suite_settings(tyro.cli(module.Args, args=list(run.command[2:])))
     module.validate_args(args)
     recorded = {**{k: v for k, v in analyze.ADDED_FLAG_DEFAULTS.items() if k in vars(args)},
                 **recorded_hparams(folder)}

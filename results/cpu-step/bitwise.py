@@ -48,8 +48,8 @@ def same_bits(a, b) -> bool:
 
 def args_for(m, **extra):
     """The studies' config: --env-id cheetah-run --noise 0.9 --hidden-dim 256 --batch-size 128 --no-noise-resample."""
-    return m.Args(env_id="cheetah-run", noise=0.9, hidden_dim=HIDDEN, batch_size=BATCH, noise_resample=False,
-                  threads=1, cuda=False, **extra)
+    return m.ene.suite_settings(m.Args(env_id="cheetah-run", noise=0.9, hidden_dim=HIDDEN, batch_size=BATCH,
+                                       noise_resample=False, threads=1, cuda=False, **extra))
 
 
 def timeit(fns: dict, calls: int, blocks: int = 7) -> dict:

@@ -178,7 +178,7 @@ def measure(script: str, device: torch.device, hidden_dim: int, episode_length: 
             blocks: int) -> dict:
     """Both arms over the same stand-in steps: the bit-for-bit check (the first block) and the timing (the others)."""
     module = importlib.import_module(script)
-    args = module.Args(hidden_dim=hidden_dim, episode_length=episode_length)
+    args = module.ene.suite_settings(module.Args(hidden_dim=hidden_dim, episode_length=episode_length))
     capacity = (blocks + 1) * steps
     arms = {name: Storage(module, args, device, capacity) for name in ("eager", "graphs")}
     graphs = Graphs(module, arms["graphs"], device, capture=device.type == "cuda")

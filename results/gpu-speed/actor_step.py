@@ -38,7 +38,8 @@ def main():
     torch.backends.cuda.matmul.allow_tf32 = args.tf32
     device = torch.device("cuda" if args.cuda else "cpu")
     torch.manual_seed(0)
-    agent = r2n_pebble.make_agent(OBS_DIM, ACT_DIM, r2n_pebble.Args(hidden_dim=args.hidden_dim), device)
+    settings = r2n_pebble.ene.suite_settings(r2n_pebble.Args(hidden_dim=args.hidden_dim))
+    agent = r2n_pebble.make_agent(OBS_DIM, ACT_DIM, settings, device)
     unused = [torch.zeros(1, device=device)] * len(r2n_pebble.Batch._fields)
     data = r2n_pebble.Batch(*unused)._replace(obs=torch.randn(args.batch_size, OBS_DIM, device=device))
     steps = {"full backward": full_backward, "actor only": r2n_pebble.actor_gradients}

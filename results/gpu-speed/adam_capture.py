@@ -190,7 +190,7 @@ def main():
                   hidden_dim=cli.hidden_dim, batch_size=cli.batch_size, updates=cli.updates, scripts={})
     for name in cli.scripts:
         module = importlib.import_module(name)
-        args = module.Args(hidden_dim=cli.hidden_dim, batch_size=cli.batch_size)
+        args = module.ene.suite_settings(module.Args(hidden_dim=cli.hidden_dim, batch_size=cli.batch_size))
         rb = module.ReplayBuffer(cli.buffer_size, OBS_DIM, ACT_DIM, device)
         generator = torch.Generator().manual_seed(1)
         for stored in (rb.obs, rb.next_obs, rb.rewards):

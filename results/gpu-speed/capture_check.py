@@ -12,7 +12,7 @@ import pebble  # noqa: E402
 def attempt(name, use_side_stream):
     def body():
         device = torch.device("cuda")
-        args = pebble.Args(hidden_dim=32, batch_size=16)
+        args = pebble.ene.suite_settings(pebble.Args(hidden_dim=32, batch_size=16))
         torch.manual_seed(0)
         agent = pebble.make_agent(6, 2, args, device)
         steps = {n: pebble.CudaGraph(getattr(pebble, n)) for n in ("critic_gradients", "actor_gradients", "target_update")}

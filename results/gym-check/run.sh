@@ -19,8 +19,10 @@ for i in range(10):
 print(f"random policy: mean {np.mean(returns):.1f}, SD {np.std(returns, ddof=1):.1f} over 10 episodes")
 PY
 
+# The SAC settings the run had (dm_control's, then every suite's): gymnasium's defaults are CleanRL's now.
 python ../../sac.py --env-id HalfCheetah-v5 --noise 0 --total-timesteps 100000 --hidden-dim 256 --batch-size 128 \
-    --eval-freq 10000 --eval-episodes 10 --threads 1 --no-cuda --seed 1 --run-name sac-halfcheetah-v5
+    --hidden-layers 2 --policy-lr 1e-4 --q-lr 1e-4 --alpha-lr 1e-4 --init-temperature 0.1 --target-update-freq 2 \
+    --weight-decay 0 --eval-freq 10000 --eval-episodes 10 --threads 1 --no-cuda --seed 1 --run-name sac-halfcheetah-v5
 
 # The verdict: the mean of the last 3 evaluations (80 000, 90 000 and 100 000 steps) against the threshold of 1000.
 python - <<'PY'

@@ -38,9 +38,9 @@ def sensitivity(checkpoint_path: str, script: str, episodes: int, redraws: int, 
     checkpoint = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
     args = checkpoint["args"]
     obs_dim, act_dim = checkpoint["obs_dim"], checkpoint["act_dim"]
-    actor = module.Actor(obs_dim, act_dim, args["hidden_dim"])
+    actor = module.Actor(obs_dim, act_dim, args["hidden_dim"], args.get("hidden_layers", 2))
     actor.load_state_dict(checkpoint["actor"])
-    qf1 = module.SoftQNetwork(obs_dim, act_dim, args["hidden_dim"])
+    qf1 = module.SoftQNetwork(obs_dim, act_dim, args["hidden_dim"], args.get("hidden_layers", 2))
     qf1.load_state_dict(checkpoint["qf1"])
     env = ene.make_env(args["env_id"], seed=seed, noise=args["noise"])
     rng = np.random.default_rng(seed + 1)
