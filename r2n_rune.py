@@ -161,8 +161,8 @@ class Args:
     agent_topology_period: int = 1000
     """SAC optimiser steps between topology updates of actor and critics"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched. Only --compile and
-    # --tf32 change its numerics (analyze.py never mixes them). Labels: --teacher, --preferences.
+    # Run settings: output, state and logging; only --compile and --tf32 change the numerics.
+    # --teacher and --preferences say where the labels come from.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True

@@ -83,8 +83,7 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched. Only --compile and
-    # --tf32 change its numerics (analyze.py never mixes them).
+    # Run settings: output, state and logging; only --compile and --tf32 change the numerics.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True

@@ -144,8 +144,8 @@ class Args:
     eval_episodes: int = 10
     """deterministic evaluation episodes, true reward"""
 
-    # Run settings: where the run writes, what it keeps, how it is watched. Only --compile and
-    # --tf32 change its numerics (analyze.py never mixes them). Labels: --teacher, --preferences.
+    # Run settings: output, state and logging; only --compile and --tf32 change the numerics.
+    # --teacher and --preferences say where the labels come from.
     exp_name: str = os.path.basename(__file__)[: -len(".py")]
     """the name of this experiment (run folder and checkpoint name)"""
     torch_deterministic: bool = True

@@ -51,6 +51,7 @@ def open_state(args) -> Optional[dict]:
     # a flag added since: its default; a state written before these flags had both on
     defaults = {field.name: field.default for field in fields(args)}
     defaults |= {name: True for name in ("resumable", "query_log") if name in defaults}
+    defaults |= {"hidden_layers": 2}  # before --hidden-layers, every network had two
     saved = {**defaults, **state["args"]}
     changed = [
         f"--{name.replace('_', '-')} {saved[name]} (now {value})"

@@ -52,7 +52,8 @@ CASES = [(script, "redrawn") for script in ARGS] + [(script, "stored, the defaul
 NOT_TRAINING = ("state_minutes", "checkpoint_freq")
 # Tags added since that only read the weights (`features/`); every other tag is compared bitwise.
 ADDED_TAGS = ("features/",)
-ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False}  # added since, off there
+ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False,  # added since, off there
+               "hidden_layers": 2, "weight_decay": 0.0}  # added since, as they were there
 # The harness's hooks were always on there (state.pt, the query log, the diagnostics); here their flags turn them on.
 HARNESS = {"resumable": True, "query_log": True, "diagnostics": True}
 ADDED_FLAGS |= HARNESS
