@@ -18,10 +18,11 @@ actor.load_state_dict(checkpoint["actor"])
 print(f"{sys.argv[1]}: step {checkpoint['global_step']}, noise {args['noise']}")
 for i in range(10):
     seed = args["seed"] + 1000 * (i + 1)
-    env = ene.make_env(args["env_id"], seed, args["noise"], args["noise_type"], episode_length=500)
+    env = ene.make_env(args["env_id"], seed, args["noise"], args["noise_type"],
+                       episode_length=args["episode_length"])
     obs, _ = env.reset(seed=seed)
     total, distances, near = 0.0, [], []
-    for _ in range(500):
+    for _ in range(args["episode_length"]):
         with torch.no_grad():
             mean, _ = actor(torch.as_tensor(obs[None]))
         obs, reward, terminated, truncated, info = env.step(torch.tanh(mean)[0].numpy())
