@@ -34,6 +34,7 @@ import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
+from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
 OBS_DIM, ACT_DIM = 171, 6  # cheetah-run at --noise 0.9
 
 
@@ -208,7 +209,7 @@ def main():
             for sparse in HostCounts(agents[arm], loops[arm]).sparse:  # a RigL step inside the comparison
                 sparse.steps = sparse.period - cli.updates // 2
         saved = {n: getattr(module, n) for n in ("critic_gradients", "actor_gradients", "target_update")}
-        graphs = {n: module.CudaGraph(f) for n, f in saved.items()} if "parts" in arms else {}
+        graphs = {n: CudaGraph(f) for n, f in saved.items()} if "parts" in arms else {}
 
         def eager(arm):
             return lambda: module.sac_update(agents[arm], rb.sample(cli.batch_size), loops[arm], args)

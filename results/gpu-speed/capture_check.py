@@ -7,6 +7,7 @@ import torch
 
 sys.path.insert(0, ".")
 import pebble  # noqa: E402
+from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
 
 
 def attempt(name, use_side_stream):
@@ -15,7 +16,7 @@ def attempt(name, use_side_stream):
         args = pebble.ene.suite_settings(pebble.Args(hidden_dim=32, batch_size=16))
         torch.manual_seed(0)
         agent = pebble.make_agent(6, 2, args, device)
-        steps = {n: pebble.CudaGraph(getattr(pebble, n)) for n in ("critic_gradients", "actor_gradients", "target_update")}
+        steps = {n: CudaGraph(getattr(pebble, n)) for n in ("critic_gradients", "actor_gradients", "target_update")}
         saved = {n: getattr(pebble, n) for n in steps}
         for n, f in steps.items():
             setattr(pebble, n, f)

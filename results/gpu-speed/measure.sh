@@ -23,6 +23,7 @@
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
 # PARTS="items window": only these parts, in the order PARTS lists them (default: items adam act_store exact window
 # aggregate).
+# BUDGET_AGGREGATE=130 (any part's name, upper case): that part's budget in seconds, in place of the one below.
 # EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them); of them, the actor
 # part takes --tf32.
 set -u
@@ -93,6 +94,10 @@ else
   resume_env=graph resume_copies=4 resume_round=90 resume_scripts=(surf.py r2n_surf.py pebble.py)
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
+for part in items lines adam act_store actor exact window aggregate resume; do  # BUDGET_WINDOW=150: a part's own
+  override="BUDGET_${part^^}"
+  [ -n "${!override:-}" ] && printf -v "budget_$part" %s "${!override}"
+done
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
 parts=(${PARTS:-items adam act_store exact window aggregate})
