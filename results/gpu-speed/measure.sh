@@ -94,10 +94,6 @@ else
   resume_env=graph resume_copies=4 resume_round=90 resume_scripts=(surf.py r2n_surf.py pebble.py)
   declare -A config_budget=([x8]=80 [x4]=55 [x8-256wide]=45 [x1]=35)
 fi
-for part in items lines adam act_store actor exact window aggregate resume; do  # BUDGET_WINDOW=150: a part's own
-  override="BUDGET_${part^^}"
-  [ -n "${!override:-}" ] && printf -v "budget_$part" %s "${!override}"
-done
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
 parts=(${PARTS:-items adam act_store exact window aggregate})
@@ -108,6 +104,8 @@ for part in "${parts[@]}"; do
   [ -n "${!budget:-}" ] || {
     echo "PARTS: no part named $part (items lines adam act_store actor exact window aggregate resume)"
     exit 2; }
+  override="BUDGET_${part^^}"
+  [ -n "${!override:-}" ] && printf -v "$budget" %s "${!override}"
   total=$((total + ${!budget}))
   plan+="$part ${!budget} s, "
 done
