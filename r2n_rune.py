@@ -843,8 +843,8 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
     `target_update_freq`) the targets. The losses stay on the device, in `loop.losses`.
 
     `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
-    `actor_gradients`, `target_update`) with compiled or captured versions of themselves.
-    The optimiser steps always run eagerly."""
+    `actor_gradients`, `target_update`) with compiled or captured versions of themselves. From the
+    step on which Adam's host scalars settle, `--cuda-graph` also replays it whole, Adam inside."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -1150,6 +1150,7 @@ if __name__ == "__main__":
         torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
         critic_gradients, actor_gradients, target_update = map(harness("cuda_graph").CudaGraph,
                                                                steps)
+        sac_update = harness("cuda_graph").WholeUpdate(sac_update)  # Adam inside, once settled
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores

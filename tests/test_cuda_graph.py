@@ -1,15 +1,18 @@
-"""Issue 19: `--cuda-graph` replays the SAC steps' gradients (and the targets' update) as CUDA graphs.
-On the CPU, with CUDA's streams and graphs faked: what `CudaGraph` captures again, and what stops the run.
+"""Issue 19: `--cuda-graph` replays the SAC steps' gradients (and the targets' update) as CUDA graphs, and (issue 71)
+the whole update with Adam inside once Adam's host scalars have settled.
+On the CPU, with CUDA's streams and graphs faked: what `CudaGraph` captures again, and what stops the run; when
+`WholeUpdate` captures, and that its replays move the host counts as eager does.
 The rest is skipped where torch sees no GPU, as on CI (docs/running.md: "Testing on a GPU"). On a GPU:
 - all 12 scripts, through every phase (pre-training, the critic reset and its re-capture, feedback rounds, topology
   updates), give the same TensorBoard points and final weights with and without `--cuda-graph`;
 - after a critic reset the graphs train the new critic (their captured tensors are the new networks' storage);
-- once captured, an SAC update (sampling, replays, eager optimiser steps) never syncs with the host."""
+- once captured, an SAC update (sampling, replays, eager optimiser steps) never syncs with the host;
+- from the settle step, the whole update replayed equals eager in every tensor, bit for bit."""
 import contextlib
-import copy
 import importlib
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -19,7 +22,7 @@ from test_scripts import ROOT, run_script, scalars
 
 sys.path.insert(0, ROOT)
 import ene  # noqa: E402
-from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
+from r2n_harness.cuda_graph import CudaGraph, WholeUpdate, settle_step  # noqa: E402
 gpu = pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA graphs need a CUDA GPU")
 STEPS = ("critic_gradients", "actor_gradients", "target_update")
 
@@ -318,3 +321,112 @@ def test_a_new_device_stops_the_run(monkeypatch, fake_cuda):
     data = random_batch(module, 4, "cpu")._replace(indices=torch.arange(16, device="meta"))
     with pytest.raises(RuntimeError, match="critic_gradients was captured on cpu and is now called on cpu, meta"):
         module.sac_update(agent, data, loop, args)
+
+
+# `WholeUpdate`: the whole SAC update as one graph, Adam inside, once its host scalars have settled.
+
+
+def settled_twins(module, device, topology_period: int = 5):
+    """Two agents from one seed, each after one update (Adam's state exists) with its step counts set to the settle
+    step, as in a run past its first 16 628 updates; a topology step falls within the next `topology_period`."""
+    topology = ({"agent_topology_period": topology_period}
+                if "agent_topology_period" in module.Args.__dataclass_fields__ else {})
+    args = ene.suite_settings(module.Args(hidden_dim=32, batch_size=16, **topology))
+    twins = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        agent, loop = module.make_agent(6, 2, args, device), module.Loop()
+        module.sac_update(agent, random_batch(module, 0, device), loop, args)
+        for adam in WholeUpdate.adams(agent):
+            for group in adam.param_groups:
+                for p in group["params"]:
+                    adam.state[p]["step"].fill_(settle_step(group["lr"], *group["betas"]))
+        twins.append((agent, loop))
+    return twins, args
+
+
+def host_counts(agent, loop) -> list:
+    """The integers an update moves on the host, and every Adam step count."""
+    return ([getattr(o, name) for o, name in WholeUpdate.counters(agent, loop)]
+            + [float(state["step"]) for adam in WholeUpdate.adams(agent) for state in adam.state.values()])
+
+
+def test_adam_settles_where_its_float32_scalars_stop_changing():
+    t = settle_step(1e-4, 0.9, 0.999)
+    assert t == 16_628  # the scripts' learning rates and betas
+    for step in (t - 1, t):  # foreach Adam's two host scalars at each step count
+        scalars = np.float32(-1e-4 / (1 - 0.9**step)), np.float32((1 - 0.999**step) ** 0.5)
+        assert (scalars == (np.float32(-1e-4), np.float32(1.0))) == (step == t)
+
+
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_whole_update_captures_once_settled_and_moves_the_host_counts_as_eager(script, monkeypatch, fake_cuda):
+    """Eager and whole-update twins through 12 updates, a topology step included: one graph per branch pattern, the
+    topology step eager, and after each update the same host counts (the loop's, the sparse optimisers', Adam's step
+    counts) and the same loss tags. A replay (faked: it runs no kernel) moves the counts as the update would."""
+    module = importlib.import_module(script[:-3])
+    captured(module, monkeypatch)
+    ((eager, eager_loop), (agent, loop)), args = settled_twins(module, torch.device("cpu"))
+    whole = WholeUpdate(module.sac_update)
+    topology_steps = []
+    for step in range(12):
+        data = random_batch(module, step + 1, "cpu")
+        topology_steps.append(WholeUpdate.topology_due(agent))
+        module.sac_update(eager, data, eager_loop, args)
+        whole(agent, data, loop, args)
+        assert host_counts(agent, loop) == host_counts(eager, eager_loop), f"{script}: update {step}"
+        assert loop.losses.keys() == eager_loop.losses.keys()
+    patterns = {(n % args.actor_update_freq, n % args.target_update_freq) for n in range(12)}
+    assert set(whole.graphs) == patterns
+    if any(hasattr(x, "period") and x.sparsity for x in vars(agent).values()):  # RigL's or SET's steps
+        assert any(topology_steps) and not all(topology_steps)
+
+
+def test_whole_update_waits_for_every_adam_to_settle(monkeypatch, fake_cuda):
+    """Before the settle step nothing is captured; PEBBLE's critic reset gives a new Adam at step 0, and the whole
+    update runs as before (its steps captured apart) until that one has settled too."""
+    module = importlib.import_module("pebble")
+    captured(module, monkeypatch)
+    agent, args = tiny_agent(module, torch.device("cpu"))
+    loop, whole = module.Loop(), WholeUpdate(module.sac_update)
+    for step in range(6):
+        whole(agent, random_batch(module, step, "cpu"), loop, args)
+    assert whole.graphs == {}
+    (_, (agent, loop)), args = settled_twins(module, torch.device("cpu"))
+    for step in range(6):
+        whole(agent, random_batch(module, step, "cpu"), loop, args)
+    assert whole.graphs
+    reset_critic(agent)
+    for step in range(6):
+        whole(agent, random_batch(module, step, "cpu"), loop, args)
+    assert whole.graphs == {} and not whole.settled
+    assert float(agent.q_optimizer.state[next(agent.qf1.parameters())]["step"]) == 6  # stepped eagerly
+
+
+@gpu
+@pytest.mark.parametrize("script", PBRL + ORACLES)
+def test_whole_update_equals_eager(script, run_stream):
+    """All 12 scripts: 30 settled updates, eager against the whole update replayed (a topology step inside where the
+    agent is sparse): every parameter, Adam moment and step count, mask and loss the same, bit for bit."""
+    module = importlib.import_module(script[:-3])
+    device = torch.device("cuda")
+    ((eager, eager_loop), (agent, loop)), args = settled_twins(module, device, topology_period=15)
+    whole = WholeUpdate(module.sac_update)
+    for update in (lambda data: module.sac_update(eager, data, eager_loop, args),
+                   lambda data: whole(agent, data, loop, args)):
+        torch.manual_seed(1)  # one random stream for both
+        for step in range(30):
+            update(random_batch(module, step + 1, device))
+    torch.cuda.synchronize()
+    assert whole.graphs, f"{script}: no update was replayed"
+
+    def state(agent, loop) -> list:
+        tensors = CudaGraph.parameters(agent) + list(loop.losses.values())
+        tensors += [t for adam in WholeUpdate.adams(agent) for s in adam.state.values() for t in s.values()]
+        tensors += [m for x in vars(agent).values() for m in getattr(x, "masks", {}).values()]
+        return [t.detach().cpu() for t in tensors]
+
+    assert host_counts(agent, loop) == host_counts(eager, eager_loop)
+    assert loop.losses.keys() == eager_loop.losses.keys()
+    for a, b in zip(state(eager, eager_loop), state(agent, loop), strict=True):
+        assert torch.equal(a, b), script

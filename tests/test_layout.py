@@ -142,7 +142,7 @@ def test_the_main_block_stays_short():
 
 
 HARNESS_MODULES = {  # the run harness's package: what each module defines, and no script does
-    "cuda_graph": ["CudaGraph"],
+    "cuda_graph": ["CudaGraph", "WholeUpdate", "settle_step"],
     "external_teacher": ["ExternalTeacher", "check_labels_unchanged", "labels_problem", "queries_digest"],
     "preferences": ["read_preferences", "load_preferences", "add_preferences"],
     "resume": ["open_state", "state_of", "load_state_", "save_state", "restore_run", "state_due"],

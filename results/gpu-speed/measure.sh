@@ -13,7 +13,8 @@
 #   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt (not run
 #              unless PARTS names it: its question was answered with --tf32)
 #   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
-#   window     a 20 000-step window of one captured run: steps/s, evaluations' and state writes' shares -> window.json
+#   window     a 20 000-step window of one captured run, the whole update replayed: steps/s, evaluations' and state
+#              writes' shares -> window.json
 #   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide started by
 #              benchmark.py with MPS -> aggregate.csv (one row per configuration, written as each ends)
 #   resume     exact resume under --cuda-graph (issue 44's item 7: surf.py once differed after a SIGKILL): rounds of
@@ -21,8 +22,8 @@
 #              once, until the budget -> resume.csv (one row per test and round; not run unless PARTS names it)
 # Also measure.log (this console) and runs.tgz (event files and logs, archived after each part and on exit).
 # --dry-run: every part on the CPU with tiny runs (32 wide, a few hundred steps), no --cuda-graph and no MPS.
-# PARTS="items window": only these parts, in the order PARTS lists them (default: items adam act_store exact window
-# aggregate).
+# PARTS="items window": only these parts, in the order PARTS lists them (default: items adam exact window aggregate,
+# 560 s).
 # BUDGET_AGGREGATE=130 (any part's name, upper case): that part's budget in seconds, in place of the one below.
 # EXTRA_FLAGS="--tf32": flags added to every timed run (the flags line of measure.log names them); of them, the actor
 # part takes --tf32.
@@ -69,9 +70,10 @@ else
   gpu=(--cuda-graph)
   items_steps=(2200 2800)
   items_flags=(--eval-freq 1000 --parallel-eval)  # its evaluations time --parallel-eval; the window's the serial one
-  window_steps=(3000 23000)
-  window_flags=(--total-timesteps 23100 --checkpoint-freq 10000 --resumable)  # the default evaluations: every 5000 steps
-  window_rounds=(7000 12000 17000 22000)
+  # the whole update replays once the critic's new Adam (the reset at step 2 000) has settled, near step 18 630
+  window_steps=(20000 40000)
+  window_flags=(--total-timesteps 40100 --checkpoint-freq 10000 --resumable)  # the default evaluations: every 5000 steps
+  window_rounds=(22000 27000 32000 37000)
   agg_steps=(2200 2500)
   agg_total=2501  # one evaluation, at the end, after the window
   # the most telling first: a call cut off still compares 8 runs without and with MPS, and has 8 at 256 wide
@@ -88,7 +90,7 @@ else
   act_store_flags=(--device cuda --steps 2000 --blocks 3)  # 8 000 steps per arm at about 1 ms each
   # adam: 2 scripts x 4 arms x 5 passes of 200 updates, at most about 4 ms each (about 32 s), plus the imports
   budget_items=45 budget_lines=45 budget_adam=45 budget_act_store=35 budget_actor=20 budget_exact=160
-  budget_window=115 budget_aggregate=170
+  budget_window=200 budget_aggregate=110  # the window: 40 100 steps at about 300 steps/s, its evaluations, start-up
   # each test runs a tiny run three times (reference, killed, resumed); 4 copies of 3 tests are 12 runs at once
   budget_resume=190
   resume_env=graph resume_copies=4 resume_round=90 resume_scripts=(surf.py r2n_surf.py pebble.py)
@@ -96,7 +98,7 @@ else
 fi
 gpu+=(${EXTRA_FLAGS:-})
 [[ " ${EXTRA_FLAGS:-} " == *" --tf32 "* ]] && actor_flags+=(--tf32)
-parts=(${PARTS:-items adam act_store exact window aggregate})
+parts=(${PARTS:-items adam exact window aggregate})
 total=0
 plan=""
 for part in "${parts[@]}"; do
