@@ -212,7 +212,8 @@ class WholeUpdate:
         if not self.settled or self.topology_due(agent) or self.calls < self.warmup_calls:
             self.calls += self.settled
             return self.update(agent, data, loop, args)
-        key = loop.sac_updates % args.actor_update_freq, loop.sac_updates % args.target_update_freq
+        n = loop.sac_updates + 1  # this update's branches: at most four graphs
+        key = n % args.actor_update_freq == 0, n % args.target_update_freq == 0
         if key not in self.graphs:
             self.graphs[key] = self.capture(agent, data, loop, args, adams)
         graph, inputs, moved, steps, losses = self.graphs[key]
