@@ -21,7 +21,6 @@ milliseconds per update of each arm over interleaved blocks. On the CPU, `whole`
 eagerly through the same host bookkeeping: a check of the harness and of the gathers, not of a graph.
 """
 import argparse
-import functools
 import importlib
 import json
 import os
@@ -29,29 +28,13 @@ import statistics
 import sys
 import time
 
-import numpy as np
 import torch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, ROOT)
-from r2n_harness.cuda_graph import CudaGraph  # noqa: E402
+from r2n_harness.cuda_graph import CudaGraph, WholeUpdate, settle_step  # noqa: E402
 OBS_DIM, ACT_DIM = 171, 6  # cheetah-run at --noise 0.9
-
-
-@functools.lru_cache
-def settle_step(lr: float, beta1: float, beta2: float) -> int:
-    """The first step count t from which foreach Adam's host scalars, as float32, no longer change.
-    They move monotonically towards their limits, so once equal to them they stay equal."""
-    limits = np.float32(-lr), np.float32(1.0)
-    t = 1
-    while (np.float32((lr / (1 - beta1**t)) * -1), np.float32((1 - beta2**t) ** 0.5)) != limits:
-        t += 1
-    return t
-
-
-def adams(agent) -> list:
-    """The agent's torch Adams (inside the sparse optimiser's wrapper, where there is one)."""
-    return [getattr(o, "optimizer", o) for o in (agent.q_optimizer, agent.actor_optimizer, agent.a_optimizer)]
+adams = WholeUpdate.adams  # the agent's torch Adams, inside the sparse optimisers' wrappers
 
 
 def agent_settle_step(agent) -> int:
