@@ -107,3 +107,36 @@ def test_diagnostics_name_a_sparse_layer_at_chance(tmp_path):
     text = (tmp_path / "d.md").read_text()
     assert "`r2n_pebble_agent_only_stored_noise`: `sparse/actor/relevant_active_frac` is at chance" in text
     assert "r2n_pebble_reward_only_stored_noise`: `sparse" not in text  # its layers moved (0.5 > 0.13)
+
+
+def test_continue_commits_each_finished_run_once(tmp_path):
+    """continue.sh's watcher: a finished run in the worktree is copied and committed alone, named with its CPU; an
+    unfinished one is left; a second pass commits nothing more."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    (repo / "unrelated.txt").write_text("staged, not the watcher's to commit\n")
+    subprocess.run(git + ["commit", "-q", "--allow-empty", "-m", "start"], cwd=repo, check=True)
+    subprocess.run(["git", "add", "unrelated.txt"], cwd=repo, check=True)
+    runs = work / "results" / "which-sparsity" / "runs"
+    for run, done in (("set_pebble_stored_noise__seed1", True), ("static_pebble_stored_noise__seed1", False)):
+        (runs / run).mkdir(parents=True)
+        (runs / run / "log.txt").write_text("log\n")
+        if done:
+            (runs / run / "done").write_text("exit code 0\nseconds 3600 over 1 start(s)\ncpu AMD EPYC, AVX2\n")
+    launcher = subprocess.Popen(["true"])  # a launcher that has stopped: the watcher makes one pass and ends
+    launcher.wait()
+    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+    env = dict(os.environ, GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@t", GIT_COMMITTER_NAME="t",
+               GIT_COMMITTER_EMAIL="t@t")
+    script = os.path.join(STUDY, "continue.sh")
+    for _ in range(2):
+        subprocess.run(["bash", script, "--watch", str(work)], cwd=repo, env=env, check=True, timeout=60)
+    log = subprocess.run(["git", "log", "--format=%s", "--name-only"], cwd=repo, capture_output=True, text=True,
+                         check=True).stdout.split("\n")
+    assert log[:5] == ["which-sparsity: set_pebble_stored_noise__seed1 (commit 0e11778, AMD EPYC, AVX2, 3600 over 1 "
+                       "start(s))", "", "results/which-sparsity/runs/set_pebble_stored_noise__seed1/done",
+                       "results/which-sparsity/runs/set_pebble_stored_noise__seed1/log.txt", "start"]
+    assert not (repo / "results" / "which-sparsity" / "runs" / "static_pebble_stored_noise__seed1").exists()
+    staged = subprocess.run(["git", "diff", "--cached", "--name-only"], cwd=repo, capture_output=True, text=True)
+    assert staged.stdout.split() == ["unrelated.txt"]
