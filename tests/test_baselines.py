@@ -168,6 +168,33 @@ def test_set_regrowth_is_uniform_over_columns():
     assert share.min() > 0.75 / 16 and share.max() < 1.25 / 16, share
 
 
+def test_set_drops_the_smallest_active_weights_of_each_member():
+    """set_update_ on a stacked (reward-ensemble) layer drops, in each member, exactly the floor(d * n_active) active
+    weights of smallest |w|, whatever the gradient; the rest stay active with their values. When the weights on some
+    columns are smaller, SET therefore moves connections off them (the which-sparsity study's SET reward members)."""
+    torch.manual_seed(2)
+    mask = set_pebble.random_mask(torch.Size([3, 32, 40]), 0.8, torch.device("cpu"))
+    weight = (torch.rand(3, 32, 40) + 0.01) * torch.where(torch.rand(3, 32, 40) < 0.5, -1.0, 1.0) * mask
+    weight[:, :, :8] *= 0.1  # small weights on the first 8 columns
+    before, values = mask.clone(), weight.clone()
+    set_pebble.set_update_(weight, mask, torch.randn(3, 32, 40), 0.2, [])
+    n_active = int(before[0].sum())
+    n_drop = math.floor(0.2 * n_active)
+    for member in range(3):
+        active = before[member].bool()
+        smallest = values[member].abs()[active].sort().values
+        kept = active & (mask[member] == 1)
+        assert int(active.sum()) - int(kept.sum()) <= n_drop  # a just-dropped position may regrow
+        dropped = active & ~kept
+        threshold = smallest[n_drop - 1]
+        assert torch.all(values[member].abs()[dropped] <= threshold)
+        assert torch.all(values[member].abs()[active & (values[member].abs() > threshold)] == weight[member].abs()[
+            active & (values[member].abs() > threshold)])  # larger ones kept, unchanged
+        assert int(mask[member].sum()) == n_active
+    small = lambda m: m[:, :, :8].sum() / m.sum()  # noqa: E731
+    assert small(mask) < small(before)  # connections move off the small-weight columns
+
+
 # ---------------------------------------------------------------- Static: the initial mask never changes
 
 
