@@ -1,6 +1,5 @@
 """Scripts end to end: smoke runs that reach every phase, their tags and checkpoint, determinism, bad input."""
 import glob
-import importlib.util
 import math
 import os
 import re

@@ -6,7 +6,6 @@ connectivity metric (`connectivity`), the weight share on relevant columns that 
 informative and 56 pure-noise input columns, RigL moves the reward members' input connections onto the informative
 columns.
 """
-import copy
 import math
 
 import pytest

@@ -1,7 +1,6 @@
 """Which way of capturing the SAC gradients works on this GPU (issue 19's first GPU session): the plain capture, and
 the whole run on a non-default stream. Prints one line per variant."""
 import sys
-import traceback
 
 import torch
 
