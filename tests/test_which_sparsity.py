@@ -87,6 +87,15 @@ def test_hypotheses_are_the_protocols_tests(tmp_path):
                 else "the reward's sparsity adds to the gain" if p_e1 < 0.05
                 else f"this study cannot tell: the reward's sparsity adds at most {upper:.1f}")
     assert f"**Reading, as fixed before the runs: {expected}.**" in text
+    # the arms' table: ours (mean ± SE, Student's 95% CI) beside the paper's, each relative to R2N-PEBBLE
+    for arm, v in values.items():
+        se = v.std(ddof=1) / np.sqrt(len(v))
+        half = stats.t.ppf(0.975, len(v) - 1) * se
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{arm}` |"))
+        assert f"| {len(v)} | {v.mean():.1f} ± {se:.1f} | [{v.mean() - half:.1f}, {v.mean() + half:.1f}] |" in row
+        assert f"| {v.mean() / r2n.mean():.2f} |" in row and row.endswith("| not recorded ×%d |" % len(v)), row
+    paper = next(line for line in text.splitlines() if line.startswith("| `r2n_pebble_agent_only_stored_noise` |"))
+    assert "| 327.33 ± 17.82 | 0.85 |" in paper
     # E5: two-sided Welch
     p_set = stats.ttest_ind(values["set_pebble_stored_noise"], r2n, equal_var=False).pvalue
     assert f"{p_set:.4f} (two-sided)" in text

@@ -25,6 +25,15 @@ PEBBLE, R2N = "pebble_stored_noise", "r2n_pebble_stored_noise"
 AGENT, REWARD = "r2n_pebble_agent_only_stored_noise", "r2n_pebble_reward_only_stored_noise"
 SEEDS = {PEBBLE: 8, R2N: 10} | {arm: spec[3] for arm, spec in power.ARMS.items()}
 HYPOTHESES = {"H1": REWARD, "H2": "dropconnect_pebble_stored_noise", "H3": "l1_pebble_stored_noise"}
+# arm -> what is sparse, and the paper's final return ± SE on cheetah-run 0.9/1000 (14 seeds, appendix tables)
+PAPER = {
+    PEBBLE: ("nothing", 237.62, 14.43), R2N: ("reward, actor, critics (RigL)", power.PAPER_R2N, 12.53),
+    AGENT: ("actor, critics (RigL)", 327.33, 17.82), REWARD: ("reward (RigL)", 265.27, 22.51),
+    "set_pebble_stored_noise": ("everywhere, random regrowth", 404.03, 13.36),
+    "static_pebble_stored_noise": ("everywhere, masks fixed", 377.23, 13.53),
+    "dropconnect_pebble_stored_noise": ("reward (DropConnect), dense agent", 219.24, 19.39),
+    "l1_pebble_stored_noise": ("reward (L1), dense agent", 239.53, 14.52),
+}
 E1_EFFECT = 38.6  # the paper's relative effect of the actor/critic-only arm, on our R2N-PEBBLE (PROTOCOL.md)
 RESAMPLES = 10_000
 
@@ -35,6 +44,18 @@ def arms(reference: str, runs: str) -> dict:
     values[PEBBLE] = power.arm_values(reference, PEBBLE)
     values[R2N] = np.concatenate([power.arm_values(reference, R2N), power.arm_values(runs, R2N)])
     return values
+
+
+def cpus(folders: tuple, arm: str) -> str:
+    """The CPUs an arm's runs ran on, from their `done` files, with counts (older files did not record it)."""
+    found = {}
+    for folder in folders:
+        for run in sorted(os.listdir(folder)):
+            done = os.path.join(folder, run, "done")
+            if run.startswith(f"{arm}__") and os.path.exists(done):
+                cpu = next((line[4:].strip() for line in open(done) if line.startswith("cpu ")), "not recorded")
+                found[cpu] = found.get(cpu, 0) + 1
+    return "; ".join(f"{cpu} ×{n}" for cpu, n in found.items())
 
 
 def missing(values: dict) -> list:
@@ -66,12 +87,21 @@ def bootstrap(values: dict, statistic, seed: int = 0) -> tuple:
     return float(low), float(high)
 
 
-def report(values: dict) -> list:
+def report(values: dict, folders: tuple) -> list:
     m = {arm: float(np.mean(v)) for arm, v in values.items()}
     lines = ["# Which sparsity carries R2N's gain? The tests of PROTOCOL.md", "",
-             "Primary metric: the mean of a run's last 3 evaluations (cheetah-run, noise 0.9, budget 1000).", "",
-             "| arm | seeds | mean | SD |", "|---|---|---|---|"]
-    lines += [f"| `{arm}` | {len(v)} | {np.mean(v):.1f} | {np.std(v, ddof=1):.1f} |" for arm, v in values.items()]
+             "Primary metric: the mean of a run's last 3 evaluations (cheetah-run, noise 0.9, budget 1000), ± its "
+             "standard error, with Student's 95% CI. The paper's: final return ± SE over 14 seeds; relative: the arm's "
+             "mean over R2N-PEBBLE's.", "",
+             "| arm | what is sparse | seeds | ours | 95% CI | SD | relative | paper | paper relative | CPUs |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for arm in sorted(values, key=lambda a: -PAPER[a][1]):
+        v, (sparse, paper, paper_se) = values[arm], PAPER[arm]
+        se = float(np.std(v, ddof=1) / math.sqrt(len(v)))
+        half = stats.t.ppf(0.975, len(v) - 1) * se
+        lines.append(f"| `{arm}` | {sparse} | {len(v)} | {m[arm]:.1f} ± {se:.1f} | [{m[arm] - half:.1f}, "
+                     f"{m[arm] + half:.1f}] | {np.std(v, ddof=1):.1f} | {m[arm] / m[R2N]:.2f} | {paper:.2f} ± "
+                     f"{paper_se:.2f} | {paper / power.PAPER_R2N:.2f} | {cpus(folders, arm)} |")
     p = {name: analyze.welch_p(values[arm], values[R2N], "less") for name, arm in HYPOTHESES.items()}
     adjusted = holm(p)
     lines += ["", "## Confirmatory: H1-H3, each arm below R2N-PEBBLE, Holm at 0.05", "",
@@ -131,7 +161,7 @@ def main():
         raise SystemExit(f"hypotheses: not every run is in, so no test is read: {', '.join(missing(values))}")
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
-        f.write("\n".join(report(values)) + "\n")
+        f.write("\n".join(report(values, (args.reference, args.runs))) + "\n")
     print(f"hypotheses: {args.out}")
 
 
