@@ -101,6 +101,22 @@ def test_hypotheses_are_the_protocols_tests(tmp_path):
     assert f"{p_set:.4f} (two-sided)" in text
 
 
+def test_holm_power_takes_each_arms_own_sd():
+    sys.path.insert(0, STUDY)
+    import power
+    seeds = {arm: spec[3] for arm, spec in power.ARMS.items()}
+    wide = power.holm_power(260.0, 10.0, 10, seeds, reps=4000, arm_sds={"l1_pebble_stored_noise": 400.0})
+    # at SD 10 the planned effects (80 to 110 points) are certain to be found; at SD 400 for L1 alone they are not
+    assert wide["dropconnect_pebble_stored_noise"] > 0.99 and wide["r2n_pebble_reward_only_stored_noise"] > 0.99
+    assert wide["l1_pebble_stored_noise"] < 0.3
+    # one-tailed at 0.05, Holm's power is at least Bonferroni's bound and at most the uncorrected test's
+    holm = power.holm_power(260.0, 60.0, 10, seeds)
+    for arm in power.CONFIRMATORY:
+        effect = (1 - power.ARMS[arm][0] / power.PAPER_R2N) * 260.0
+        bound = power.power(effect, 60.0, seeds[arm], 10, 0.05 / 3)
+        assert bound - 0.02 < holm[arm] < power.power(effect, 60.0, seeds[arm], 10) + 0.02, (arm, bound, holm)
+
+
 def test_diagnostics_name_a_sparse_layer_at_chance(tmp_path):
     make_study(tmp_path)
     folder = tmp_path / "runs"
@@ -149,3 +165,20 @@ def test_continue_commits_each_finished_run_once(tmp_path):
     assert not (repo / "results" / "which-sparsity" / "runs" / "static_pebble_stored_noise__seed1").exists()
     staged = subprocess.run(["git", "diff", "--cached", "--name-only"], cwd=repo, capture_output=True, text=True)
     assert staged.stdout.split() == ["unrelated.txt"]
+
+
+def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):
+    """Once all 54 runs are in, `analysis/` is committed, and its tests and diagnostics are what the scripts make of
+    the committed runs now (a run or a script changed without `analyze.sh` fails here). Before, it holds no test."""
+    runs = os.path.join(STUDY, "runs")
+    landed = sum(os.path.exists(os.path.join(runs, run, "done")) for run in os.listdir(runs))
+    committed = os.path.join(STUDY, "analysis", "hypotheses.md")
+    assert landed <= 54 and os.path.exists(committed) == (landed == 54), \
+        f"{landed} of 54 runs are in: run `bash results/which-sparsity/analyze.sh` once all are, and commit analysis/"
+    if landed < 54:
+        return
+    for script, name in (("hypotheses.py", "hypotheses.md"), ("diagnostics.py", "diagnostics.md")):
+        subprocess.run([sys.executable, os.path.join(STUDY, script), "--out", str(tmp_path / name)], check=True,
+                       capture_output=True, timeout=300)
+        with open(os.path.join(STUDY, "analysis", name)) as f:
+            assert (tmp_path / name).read_text() == f.read(), f"run `bash results/which-sparsity/analyze.sh`: {name}"

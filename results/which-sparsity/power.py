@@ -61,9 +61,10 @@ def seeds_for(effect: float, sd: float, n_ref: int, alpha: float, target: float 
     return next((n for n in range(2, 201) if power(effect, sd, n, n_ref, alpha) >= target), 0)
 
 
-def report(r2n_mean: float, sds: dict, n_ref: int, seeds: dict):
+def report(r2n_mean: float, sds: dict, n_ref: int, seeds: dict, arms: tuple = tuple(ARMS)):
     k = len(CONFIRMATORY)
-    for arm, (paper, direction, family, _) in ARMS.items():
+    for arm in arms:
+        paper, direction, family, _ = ARMS[arm]
         ratio = paper / PAPER_R2N
         effect = (1 - ratio) * r2n_mean
         line = f"{arm}: paper ratio {ratio:.3f}, expected {ratio * r2n_mean:.1f}, effect {effect:+.1f}; {family}"
@@ -77,14 +78,16 @@ def report(r2n_mean: float, sds: dict, n_ref: int, seeds: dict):
         print(line + f" (alpha {alpha:.4f}); " + "; ".join(parts))
 
 
-def holm_power(r2n_mean: float, sd: float, n_ref: int, seeds: dict, reps: int = 20_000, seed: int = 0) -> dict:
+def holm_power(r2n_mean: float, sd: float, n_ref: int, seeds: dict, reps: int = 20_000, seed: int = 0,
+               arm_sds: dict | None = None) -> dict:
     """Each confirmatory hypothesis's power under Holm's correction, by simulation: normal primary metrics at the
-    planned means and one SD, one-tailed Welch tests against one shared R2N-PEBBLE sample, Holm at ALPHA."""
+    planned means, one-tailed Welch tests against one shared R2N-PEBBLE sample, Holm at ALPHA. R2N-PEBBLE's SD is
+    `sd`; a new arm's is its entry in `arm_sds`, else `sd`."""
     rng = np.random.default_rng(seed)
     reference = rng.normal(r2n_mean, sd, (reps, n_ref))
     p = []
     for arm in CONFIRMATORY:
-        new = rng.normal(ARMS[arm][0] / PAPER_R2N * r2n_mean, sd, (reps, seeds[arm]))
+        new = rng.normal(ARMS[arm][0] / PAPER_R2N * r2n_mean, (arm_sds or {}).get(arm, sd), (reps, seeds[arm]))
         va, vb = new.var(axis=1, ddof=1) / new.shape[1], reference.var(axis=1, ddof=1) / n_ref
         t = (new.mean(axis=1) - reference.mean(axis=1)) / np.sqrt(va + vb)
         df = (va + vb) ** 2 / (va ** 2 / (new.shape[1] - 1) + vb ** 2 / (n_ref - 1))
@@ -131,13 +134,24 @@ if __name__ == "__main__":
                   f"{effect:.1f} with probability {stats.norm.cdf((effect - t * se) / se):.2f} if the true difference is 0")
         raise SystemExit
     r2n = np.concatenate([r2n, arm_values(os.path.join(STUDY, "runs"), "r2n_pebble_stored_noise")])
-    seeds, sds = {}, {}
-    for arm in ARMS:
-        values = arm_values(os.path.join(STUDY, "runs"), arm)
-        seeds[arm] = len(values)
-        if len(values) < 2:
-            raise SystemExit(f"{arm}: {len(values)} runs in; the power achieved needs every run")
-        print(f"{arm}: n {len(values)}, mean {values.mean():.1f}, SD {values.std(ddof=1):.1f}")
-        sds[arm] = pooled_sd([values, r2n])
-    for arm in ARMS:
-        report(float(r2n.mean()), {f"{arm} with R2N-PEBBLE, pooled": sds[arm]}, len(r2n), seeds)
+    print(f"R2N-PEBBLE, the {len(r2n)} seeds of the tests: mean {r2n.mean():.1f}, SD {r2n.std(ddof=1):.1f}")
+    values = {arm: arm_values(os.path.join(STUDY, "runs"), arm) for arm in ARMS}
+    seeds = {arm: len(v) for arm, v in values.items()}
+    for arm, v in values.items():
+        if len(v) < 2:
+            raise SystemExit(f"{arm}: {len(v)} runs in; the power achieved needs every run")
+        print(f"{arm}: n {len(v)}, mean {v.mean():.1f}, SD {v.std(ddof=1):.1f}")
+    print("each arm at the SD its own test saw (its own pooled with R2N-PEBBLE's), for the effect PROTOCOL.md planned:")
+    for arm, v in values.items():
+        report(float(r2n.mean()), {"pooled with R2N-PEBBLE": pooled_sd([v, r2n])}, len(r2n), seeds, (arm,))
+    own = {arm: float(v.std(ddof=1)) for arm, v in values.items()}
+    holm = holm_power(float(r2n.mean()), float(r2n.std(ddof=1)), len(r2n), seeds, arm_sds=own)
+    print(f"Holm, simulated at the SDs observed (R2N-PEBBLE {r2n.std(ddof=1):.1f}, each arm its own): "
+          + ", ".join(f"{arm} {value:.2f}" for arm, value in holm.items()))
+    agent = values["r2n_pebble_agent_only_stored_noise"]
+    effect = (1 - ARMS["r2n_pebble_agent_only_stored_noise"][0] / PAPER_R2N) * r2n.mean()
+    va, vb = r2n.var(ddof=1) / len(r2n), agent.var(ddof=1) / len(agent)
+    se, df = math.sqrt(va + vb), (va + vb) ** 2 / (va ** 2 / (len(r2n) - 1) + vb ** 2 / (len(agent) - 1))
+    print(f"agent-only at the SDs observed: SE of R2N - agent-only {se:.1f}; the 95% upper bound falls below "
+          f"{effect:.1f} with probability {stats.norm.cdf((effect - stats.t.ppf(0.95, df) * se) / se):.2f} "
+          "if the true difference is 0")
