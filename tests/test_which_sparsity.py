@@ -1,5 +1,6 @@
 """Issue 69's analysis (results/which-sparsity): the tests as PROTOCOL.md fixes them, on synthetic runs whose primary
 metrics are known, against scipy; the refusal before every run is in; the diagnostics' stop rule."""
+import importlib.util
 import os
 import subprocess
 import sys
@@ -102,8 +103,10 @@ def test_hypotheses_are_the_protocols_tests(tmp_path):
 
 
 def test_holm_power_takes_each_arms_own_sd():
-    sys.path.insert(0, STUDY)
-    import power
+    # by path: other studies have a `power` module too
+    spec = importlib.util.spec_from_file_location("which_sparsity_power", os.path.join(STUDY, "power.py"))
+    power = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(power)
     seeds = {arm: spec[3] for arm, spec in power.ARMS.items()}
     wide = power.holm_power(260.0, 10.0, 10, seeds, reps=4000, arm_sds={"l1_pebble_stored_noise": 400.0})
     # at SD 10 the planned effects (80 to 110 points) are certain to be found; at SD 400 for L1 alone they are not
