@@ -107,7 +107,7 @@ def test_holm_power_takes_each_arms_own_sd():
     spec = importlib.util.spec_from_file_location("which_sparsity_power", os.path.join(STUDY, "power.py"))
     power = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(power)
-    seeds = {arm: spec[3] for arm, spec in power.ARMS.items()}
+    seeds = {arm: plan[3] for arm, plan in power.ARMS.items()}
     wide = power.holm_power(260.0, 10.0, 10, seeds, reps=4000, arm_sds={"l1_pebble_stored_noise": 400.0})
     # at SD 10 the planned effects (80 to 110 points) are certain to be found; at SD 400 for L1 alone they are not
     assert wide["dropconnect_pebble_stored_noise"] > 0.99 and wide["r2n_pebble_reward_only_stored_noise"] > 0.99
