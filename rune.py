@@ -1104,7 +1104,9 @@ if __name__ == "__main__":
                         trained = feedback_round(args.query_sampling, loop, args, reward_model,
                                                  reward_optimizer, episodes, prefs, rb, ask)
                         log_round(writer, global_step, trained, loop)
-                    sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)
+                    data = rb.sample(args.batch_size)
+                    loop.losses["rune_bonus"] = beta * data.stds.mean()  # the bonus's mean size
+                    sac_update(agent, rune_batch(data, beta), loop, args)
 
                 if global_step % args.log_freq == 0:
                     log_losses(writer, global_step, loop.losses)

@@ -18,7 +18,7 @@ from test_scripts import (COMMON_TAGS, ROOT, SPARSE_TAGS, SPARSE_TINY, TINY, TOP
 # 30 steps by SURF (crop 5), inside the 100-step episodes. SURF's tau is lowered so that pseudo-labels are kept.
 SHORT = ["--total-timesteps", "1200", "--eval-freq", "600"]
 SCRIPT_TAGS = {
-    "rune.py": ["pbrl/beta"], "r2n_rune.py": ["pbrl/beta"],
+    "rune.py": ["pbrl/beta", "losses/rune_bonus"], "r2n_rune.py": ["pbrl/beta", "losses/rune_bonus"],
     "surf.py": ["pbrl/pseudo_label_rate"], "r2n_surf.py": ["pbrl/pseudo_label_rate"],
 }
 
@@ -40,6 +40,8 @@ def test_smoke_reaches_every_phase(script, tmp_path):
     assert len(values["eval/episodic_return"]) == 2 and result.stdout.count("eval_return=") == 2
     if "rune" in script:  # logged every 100 steps from the first feedback round (500) on, with the decayed weight
         assert values["pbrl/beta"] == pytest.approx([rune.rune_beta(t, 0.05, 1e-5) for t in range(500, 1200, 100)])
+        # the bonus's size, from the SAC updates after the first round on: beta x a mean population std
+        assert len(values["losses/rune_bonus"]) == 6 and all(0 <= v <= 0.05 for v in values["losses/rune_bonus"])
     else:
         assert all(0 <= v <= 1 for v in values["pbrl/pseudo_label_rate"])
 
@@ -110,7 +112,8 @@ def test_rune_batch_adds_beta_sigma_to_the_rewards_for_the_critic_target():
     assert all(getattr(bonus, name) is getattr(data, name) for name in data._fields if name != "rewards")
     source = open(os.path.join(ROOT, "rune.py")).read()
     # in the updates after the critic reset and in every later one; pre-training's reward is the state entropy alone
-    assert source.count("sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)") == 2
+    assert source.count("sac_update(agent, rune_batch(rb.sample(args.batch_size), beta), loop, args)") == 1
+    assert source.count("sac_update(agent, rune_batch(data, beta), loop, args)") == 1  # its bonus logged too
     assert "rune_batch" not in source[source.index("if global_step < pebble_start:"):source.index("elif global_step == pebble_start:")]
 
 
@@ -179,6 +182,58 @@ def test_surf_unlabeled_loss_averages_over_the_whole_minibatch():
     targets, kept = torch.tensor([[1.0, 0.0, 0.0, 0.0]]), torch.tensor([[True, False, False, True]])
     expected = (F.cross_entropy(returns[0, 0:1], torch.tensor([1])) + F.cross_entropy(returns[0, 3:4], torch.tensor([0])))
     assert torch.allclose(surf.pseudo_label_loss(returns, targets, kept), expected / 4)  # kept pairs / whole minibatch
+
+
+class GradientRecorder:
+    """An optimiser that records each step's gradient and leaves the parameters alone."""
+
+    def __init__(self, parameters):
+        self.parameters, self.gradients = list(parameters), []
+
+    def zero_grad(self):
+        for p in self.parameters:
+            p.grad = None
+
+    def step(self):
+        self.gradients.append(torch.cat([p.grad.flatten() for p in self.parameters]))
+
+
+def test_surf_step_is_surfs_loss():
+    """A reward step's gradient is that of SURF's loss written out on its own: per member, the Bradley-Terry loss of
+    its cropped labelled pairs plus lambda x the pseudo-label loss of its cropped unlabelled pairs, whose pseudo-labels
+    come from their uncropped central steps and are kept where confident."""
+    device, members, batch, crop, segment, lam, tau = torch.device("cpu"), 3, 8, 2, 6, 0.7, 0.6
+    torch.manual_seed(0)
+    prefs = surf.PreferenceBuffer(6, segment, 5, device)
+    prefs.add(torch.randn(6, 2, segment + 2 * crop, 5), torch.tensor([0.0, 1.0, 1.0, 0.5, 0.0, 1.0]))
+    unlabeled = surf.PreferenceBuffer(13, segment, 5, device)
+    unlabeled.add(torch.randn(13, 2, segment + 2 * crop, 5) * 3, torch.zeros(13))
+    model = surf.RewardEnsemble(5, 8, 2, members)
+    recorder = GradientRecorder(model.parameters())
+    torch.manual_seed(1)
+    surf.train_reward(model, recorder, prefs, unlabeled, batch, 1, crop, tau, lam, 1)
+    assert len(recorder.gradients) == 1  # ceil(1 epoch x 6 labels / 8) steps
+    # the same draws, in the step's order: labelled minibatch, its crops, unlabelled minibatch, its crops
+    torch.manual_seed(1)
+    indices = next(surf.member_minibatches(6, members, batch, device))
+    crops = surf.temporal_crop(indices.shape, segment + 2 * crop, segment, crop, device)
+    indices_u = next(surf.member_minibatches(13, members, batch, device))
+    crops_u = surf.temporal_crop(indices_u.shape, segment + 2 * crop, segment, crop, device)
+    segments, labels = prefs.segments[indices], prefs.labels[indices]  # (E, 6, 2, S, D)
+    rewards = model(segments.flatten(1, 3)).view(*segments.shape[:4])
+    labelled = F.binary_cross_entropy_with_logits(
+        (rewards * crops).sum(-1).diff(dim=-1).squeeze(-1), labels, reduction="none").mean(-1)
+    rewards_u = model(unlabeled.segments[indices_u].flatten(1, 3)).view(members, 8, 2, -1)
+    central = rewards_u[..., crop : crop + segment].detach().sum(-1)
+    confident = torch.sigmoid((central[..., 1] - central[..., 0]).abs()) >= tau
+    assert 0 < confident.float().mean() < 1  # both kinds of unlabelled pair are in the minibatch
+    pseudo = (central[..., 1] > central[..., 0]).float()
+    unlabelled = (confident * F.binary_cross_entropy_with_logits(
+        (rewards_u * crops_u).sum(-1).diff(dim=-1).squeeze(-1), pseudo, reduction="none")).sum(-1) / 8
+    model.zero_grad()
+    (labelled + lam * unlabelled).sum().backward()
+    expected = torch.cat([p.grad.flatten() for p in model.parameters()])
+    assert torch.allclose(recorder.gradients[0], expected, rtol=1e-5, atol=1e-6)
 
 
 def test_surf_without_confident_pseudo_labels_trains_on_labels_only():
