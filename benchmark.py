@@ -88,6 +88,9 @@ VARIANTS = {
     "r2n_pebble_agent_only_stored_noise": ("r2n_pebble.py", ("--no-sparse-reward", "--no-noise-resample")),
     **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",))
        for m in ("set_pebble", "static_pebble", "l1_pebble", "dropconnect_pebble")},
+    # issue 91's study of R2N on SURF and RUNE, and of R2N's sparse reward where its topology moves (SURF's schedule)
+    **{f"{m}_stored_noise": (f"{m}.py", ("--no-noise-resample",)) for m in ("surf", "r2n_surf", "rune", "r2n_rune")},
+    "r2n_surf_agent_only_stored_noise": ("r2n_surf.py", ("--no-sparse-reward", "--no-noise-resample")),
 }
 # SAC oracles: trained on the true reward, no feedback budget.
 NO_FEEDBACK = frozenset({"sac", "anf_sac", "sac_stored_noise", "anf_sac_stored_noise"})
@@ -180,12 +183,24 @@ WHICH_SPARSITY = tuple(
         (("set_pebble_stored_noise", "static_pebble_stored_noise"), tuple(range(1, 9)), 2),
     )
 )
+# Issue 91's study (results/surf-rune/PROTOCOL.md, fixed before its first run): R2N on SURF and RUNE, and SURF's
+# actor/critic-only arm, at the stored-noise study's scale and environment. In the protocol's order: RUNE's and SURF's
+# two arms seed-major (RUNE and R2N-RUNE 10 seeds, SURF 8, R2N-SURF 10), then the actor/critic-only arm (10 seeds).
+SURF_RUNE = tuple(
+    Preset((("cheetah-run", 0.9, 1000),), methods, seeds, CHEETAH_FLAGS, ("--feedback-freq", "1200"), stage)
+    for methods, seeds, stage in (
+        (("rune_stored_noise", "r2n_rune_stored_noise", "surf_stored_noise", "r2n_surf_stored_noise"),
+         tuple(range(1, 9)), 0),
+        (("rune_stored_noise", "r2n_rune_stored_noise", "r2n_surf_stored_noise"), (9, 10), 0),
+        (("r2n_surf_agent_only_stored_noise",), tuple(range(1, 11)), 1),
+    )
+)
 # A preset's results folder: the event file, log and `done` file of each finished run, committed
 RESULTS = {"cpu-study": "results/cpu-study", "cheetah-pilot": "results/cheetah-pilot", "early-stop": "results/early-stop",
            "cheetah-study": "results/cheetah-study", "imitate": "results/imitate",
            "stored-noise": "results/stored-noise/runs", "redrawn-probes": "results/stored-noise/probes",
            "stored-table-pilot": "results/stored-table/pilot", "stored-table": "results/stored-table/runs",
-           "which-sparsity": "results/which-sparsity/runs"}
+           "which-sparsity": "results/which-sparsity/runs", "surf-rune": "results/surf-rune/runs"}
 
 
 MAIN_SETTINGS = tuple((env, noise, budget) for env, (noise, budget) in PAPER_SETTINGS.items())
@@ -231,6 +246,8 @@ PRESETS = {
     "stored-table": STORED_TABLE,
     # which sparsity carries R2N's gain: 2 DST-ablation arms x 10 seeds, R2N-PEBBLE seeds 9-10, 4 baselines x 8 seeds
     "which-sparsity": WHICH_SPARSITY,
+    # R2N on SURF and RUNE: RUNE, R2N-RUNE x 10 seeds, SURF x 8, R2N-SURF x 10, then R2N-SURF's actor/critic-only x 10
+    "surf-rune": SURF_RUNE,
 }
 
 
@@ -238,7 +255,8 @@ PRESETS = {
 class Args:
     preset: Optional[Literal["main", "sparse-baselines", "noise-sweep", "feedback-sweep", "dst-ablation", "cpu-study",
                              "early-stop", "cheetah-pilot", "cheetah-study", "imitate", "stored-noise",
-                             "redrawn-probes", "stored-table-pilot", "stored-table", "which-sparsity"]] = None
+                             "redrawn-probes", "stored-table-pilot", "stored-table", "which-sparsity",
+                             "surf-rune"]] = None
     """a paper experiment: `main` (5 tasks, pebble/surf/rune and their R2N versions, 14 seeds), `sparse-baselines`
     (r2n/set/static/l1/dropconnect pebble, 5 tasks, 5 seeds), `noise-sweep`, `feedback-sweep` (cheetah-run, pebble and
     r2n_pebble, 5 seeds), `dst-ablation` (r2n_pebble, r2n_pebble_reward_only, r2n_pebble_agent_only, 5 seeds); or
@@ -249,7 +267,8 @@ class Args:
     `stored-noise`, the cheetah study with the noise stored (`results/stored-noise/runs`), then `redrawn-probes`,
     its three exploratory arms with the noise redrawn (`results/stored-noise/probes`); `stored-table-pilot`, the
     pilot of the main table in the stored ENE (`results/stored-table/pilot`), then `stored-table`, its primary runs
-    (`results/stored-table/runs`); `which-sparsity`, which sparsity carries R2N's gain (`results/which-sparsity/runs`)"""
+    (`results/stored-table/runs`); `which-sparsity`, which sparsity carries R2N's gain (`results/which-sparsity/runs`);
+    `surf-rune`, R2N on SURF and RUNE and SURF's actor/critic-only arm (`results/surf-rune/runs`)"""
     methods: Optional[tuple[str, ...]] = None
     """methods (= `--exp-name`): a script name without `.py`, or a variant of `VARIANTS` (`r2n_pebble_reward_only`,
     `pebble_stored_noise`, ...); replaces the preset's"""

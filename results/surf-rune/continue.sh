@@ -1,0 +1,75 @@
+#!/usr/bin/env bash
+# Continues the surf-rune study (PROTOCOL.md) in the background, from the protocol's fixed commit, and commits each
+# run into this checkout as it finishes. Run from the repository root, with the project's venv active:
+#
+#   bash results/surf-rune/continue.sh [WORKTREE]     # default WORKTREE: ../surf-rune-$COMMIT
+#   bash results/surf-rune/continue.sh --dry-run      # how many runs are left, nothing started
+#
+# 1. A git worktree at the protocol's commit (made once), holding a copy of the committed runs, so that the launcher
+#    skips them: `benchmark.py --preset surf-rune --workers 2` there, one torch thread a run, at the lowest priority.
+# 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
+#    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
+#    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
+# Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
+# launcher stops when every run is in, the watcher when the launcher has stopped and nothing is left to commit.
+# Nothing starts while `STOPPED` is here: the protocol wants the bug search written down first.
+set -euo pipefail
+STUDY=results/surf-rune
+main=$(git rev-parse --show-toplevel)
+# the protocol's commit: the one that added PROTOCOL.md
+COMMIT=$(git -C "$main" log --diff-filter=A --format=%h --abbrev=7 -- "$STUDY/PROTOCOL.md" | tail -n 1)
+[ -n "$COMMIT" ] || { echo "$STUDY/PROTOCOL.md is not committed: commit the protocol first" >&2; exit 1; }
+mode=${1:-}
+[[ $mode = --dry-run || $mode = --watch ]] && shift || mode=""
+work=$(realpath -m "${1:-$(dirname "$main")/surf-rune-$COMMIT}")
+cd "$main"
+
+watch() {  # until the launcher has stopped and every finished run is committed
+    local launcher running id folder cpu seconds message
+    launcher=$(cat "$work/launcher.pid")
+    while true; do
+        running=""
+        kill -0 "$launcher" 2> /dev/null && running=1
+        for folder in "$work/$STUDY"/runs/*/; do
+            id=$(basename "$folder")
+            [ -f "$folder/done" ] && [ ! -f "$STUDY/runs/$id/done" ] || continue
+            mkdir -p "$STUDY/runs/$id"
+            cp "$folder"/* "$STUDY/runs/$id/"
+            cpu=$(sed -n 's/^cpu //p' "$STUDY/runs/$id/done")
+            seconds=$(sed -n 's/^seconds //p' "$STUDY/runs/$id/done")
+            for _ in 1 2 3 4 5 6 7 8 9 10; do  # another git command may hold the index for a moment
+                git add -- "$STUDY/runs/$id" && git commit -q -m \
+                    "surf-rune: $id (commit $COMMIT, $cpu, $seconds)" -- "$STUDY/runs/$id" && break
+                sleep 5
+            done
+            echo "$(date -u +%FT%TZ) committed $id"
+            if ! message=$(python "$STUDY/stop_rule.py"); then
+                kill -TERM "$launcher" 2> /dev/null || true
+                printf '%s\n%s\n' "$(date -u +%FT%TZ)" "$message" > "$STUDY/STOPPED"
+                echo "$(date -u +%FT%TZ) $message; launcher stopped"
+            fi
+        done
+        [ -n "$running" ] || return 0
+        sleep 60
+    done
+}
+[ "$mode" = --watch ] && { watch; exit 0; }
+[ -e "$STUDY/STOPPED" ] && { echo "$STUDY/STOPPED: the stop rule fired; write the bug search down first" >&2; exit 1; }
+if [ ! -d "$work" ]; then
+    git worktree add --detach "$work" "$COMMIT" > /dev/null
+fi
+[ "$(git -C "$work" rev-parse --short=7 HEAD)" = "$COMMIT" ] || { echo "$work is not at $COMMIT" >&2; exit 1; }
+mkdir -p "$work/$STUDY/runs"
+for run in "$STUDY"/runs/*/; do  # the committed runs, so that the launcher skips them
+    [ -d "$run" ] || continue
+    [ -e "$work/$STUDY/runs/$(basename "$run")/done" ] || cp -r "$run" "$work/$STUDY/runs/"
+done
+export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+if [ "$mode" = --dry-run ]; then
+    (cd "$work" && python benchmark.py --preset surf-rune --workers 2 --dry-run | tail -n 1)
+    exit 0
+fi
+(cd "$work" && setsid nohup nice -n 19 python benchmark.py --preset surf-rune --workers 2 \
+    > "$work/launcher.log" 2>&1 < /dev/null & echo $! > "$work/launcher.pid")
+setsid nohup bash "$main/$STUDY/continue.sh" --watch "$work" >> "$work/watcher.log" 2>&1 < /dev/null &
+echo "launcher: $work/launcher.log; watcher: $work/watcher.log; the runs' logs: $work/logs/"
