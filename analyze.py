@@ -101,10 +101,10 @@ RUN_SPECIFIC_KEYS = frozenset({
 # existed before `--teacher`, and the noise was redrawn before `--noise-resample`), so that old and new runs of one
 # configuration stay one group.
 ADDED_FLAG_DEFAULTS = {"teacher": "simulated", "preferences": None, "compile": False, "tf32": False,
-                       "noise_resample": True, "hidden_layers": 2, "weight_decay": 0.0}
+                       "noise_resample": True, "hidden_layers": 2, "weight_decay": 0.0, "cuda_graph_whole": False}
 # Flags that change a run's numerics (issue 19), and the flag that makes the noise redrawn or stored (two different
 # environments): runs that differ in one are never averaged together or compared.
-NUMERICS_KEYS = ("compile", "tf32")
+NUMERICS_KEYS = ("compile", "tf32", "cuda_graph_whole")  # the last: not yet shown exact on a GPU
 VARIANT_KEYS = ("noise_resample",)
 # Settings a method should share with its baseline for a fair comparison (a difference gives a note, not a skip).
 COMPARED_KEYS = ("total_timesteps", "eval_freq", "eval_episodes", "episode_length", "noise_type")

@@ -545,7 +545,7 @@ def stop_with_launcher():
 
 # the scripts' numerics flags, named in each `done` file: `--compile` and `--tf32` change floating-point results (analyze.py
 # never compares runs that differ in them); `--cuda-graph` gives eager's numbers on its GPU
-NUMERICS_FLAGS = ("--compile", "--tf32", "--cuda-graph")
+NUMERICS_FLAGS = ("--compile", "--tf32", "--cuda-graph", "--cuda-graph-whole")
 
 
 def device_of(command: tuple) -> str:

@@ -3,9 +3,9 @@
 R2N paper: Muslimani et al., "Boosting Robustness in Preference-Based Reinforcement Learning with
 Dynamic Sparsity", AAMAS 2025 (the authors' code: https://github.com/cmuslima/R2N).
 SAC: Haarnoja et al., "Soft Actor-Critic Algorithms and Applications", 2018: the SAC inside
-`pebble.py` (networks, update, flags, defaults), on the env's reward: `diff sac.py pebble.py` is
-PEBBLE. The upper bound of the PbRL curves, and with `--noise 0` the policy whose rollouts give
-`--noise-type imitate` its histograms (`make_histograms.py`).
+`pebble.py`, on the env's reward: `diff sac.py pebble.py` is PEBBLE (and its harness hooks). The
+PbRL scripts' oracle (their upper bound only with the noise redrawn: docs/sac.md), and with
+`--noise 0` the policy whose rollouts give `--noise-type imitate` its histograms.
 Choices where the paper is silent, and each step in detail: the docs page.
 """
 import importlib.util  # also binds importlib
@@ -96,6 +96,8 @@ class Args:
     """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, other numerics"""
     cuda_graph: bool = False
     """replay the SAC steps' gradients as CUDA graphs (GPU only): faster, eager's numbers"""
+    cuda_graph_whole: bool = False
+    """with --cuda-graph: the whole SAC update as one graph, Adam inside (not yet run on a GPU)"""
     parallel_eval: bool = False
     """step the evaluation envs at once, each in its own process: the same returns"""
     track: bool = False
@@ -385,7 +387,7 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
 
     `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
     `actor_gradients`, `target_update`) with compiled or captured versions of themselves. From the
-    step on which Adam's host scalars settle, `--cuda-graph` also replays it whole, Adam inside."""
+    step on which Adam's host scalars settle, `--cuda-graph-whole` replays it whole, Adam inside."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -430,6 +432,8 @@ def validate_args(args: Args) -> None:
         raise ValueError(f"{given[0]} needs the package r2n_harness: run this in R2N's repository")
     if args.tf32 and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
+    if args.cuda_graph_whole and not args.cuda_graph:
+        raise ValueError("--cuda-graph-whole needs --cuda-graph")
     if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
@@ -517,6 +521,41 @@ def check_finite(values: dict, step: int):
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
 
 
+class Progress:
+    """The console's progress line: at each phase change and at most every `interval` seconds of
+    training, the step of the total, the phase, SPS since the last line, the ETA at that rate, the
+    feedback used of `budget` (PbRL) and the last evaluation's return. Host values only: no sync."""
+
+    def __init__(self, total_steps: int, phases: dict, last_phase: str, step: int, seconds: float,
+                 budget: Optional[int] = None, interval: float = 30.0):
+        # `phases`: each phase's name and the step it ends at, in order; then `last_phase`
+        self.total_steps, self.phases, self.last_phase = total_steps, phases, last_phase
+        self.step, self.time, self.budget, self.interval = step, seconds, budget, interval
+        self.phase = None
+
+    def update(self, step: int, loop: Loop, start_time: float):
+        """At `step`; `start_time`: the training clock's start, plus any waits for labels."""
+        seconds = time.time() - start_time
+        phase = next((name for name, end in self.phases.items() if step < end), self.last_phase)
+        if phase == self.phase and seconds - self.time < self.interval:
+            return
+        moved = step > self.step and seconds > self.time
+        sps = (step - self.step) / (seconds - self.time) if moved else 0.0
+        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
+        feedback = f" | feedback {loop.total_feedback}/{self.budget}" if self.budget else ""
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%)"
+        line += f" | {phase} | {sps:.0f} SPS | ETA {eta}{feedback} | eval return "
+        eval_return = loop.last_eval.get("eval/episodic_return")
+        print(line + ("-" if eval_return is None else f"{eval_return:.1f}"), flush=True)
+        self.phase, self.step, self.time = phase, step, seconds
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return (f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
+                else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m")
+
+
 def log_evaluation(writer: SummaryWriter, global_step: int, actor: Actor, envs: list,
                    device: torch.device, start_time: float, loop: Loop, args: Args, more: dict):
     """Evaluate the policy, log its tags and `more` (kept in `loop.last_eval`: a resume logs them
@@ -583,7 +622,8 @@ if __name__ == "__main__":
         torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
         critic_gradients, actor_gradients, target_update = map(harness("cuda_graph").CudaGraph,
                                                                steps)
-        sac_update = harness("cuda_graph").WholeUpdate(sac_update)  # Adam inside, once settled
+        if args.cuda_graph_whole:  # the whole update, Adam inside, once settled
+            sac_update = harness("cuda_graph").WholeUpdate(sac_update)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
@@ -608,11 +648,14 @@ if __name__ == "__main__":
     else:
         (obs, _), start_step, elapsed = env.reset(seed=args.seed), 0, 0.0
     start_time = time.time() - elapsed  # SPS counts the time spent training only
+    progress = Progress(args.total_timesteps, {"random": args.learning_starts}, "SAC", start_step,
+                        elapsed)
     obs = torch.as_tensor(obs, device=device)
     try:
         for global_step in range(start_step, args.total_timesteps):
             if run:
                 run.step_starts(global_step, start_time)
+            progress.update(global_step, loop, start_time + (run.waited if run else 0.0))
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()

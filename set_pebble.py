@@ -118,10 +118,6 @@ class Args:
     """a round's training stops early once the mean training accuracy exceeds this"""
     relabel_batch_size: int = 16384
     """transitions per reward-ensemble forward pass when relabelling the replay buffer"""
-    diagnostic_transitions: int = 10_000
-    """stored transitions behind `pbrl/reward_true_corr` (at fixed relative buffer positions)"""
-    diagnostic_pairs: int = 256
-    """new pairs per round for `pbrl/heldout_accuracy`; oracle labels, not trained on or counted"""
     teacher_beta: float = -1.0
     """rationality: if > 0, Bernoulli(sigmoid(beta * return gap)) labels, else deterministic"""
     teacher_gamma: float = 1.0
@@ -169,6 +165,8 @@ class Args:
     """TF32 matmuls on a CUDA GPU (10-bit mantissas on tensor cores): faster, other numerics"""
     cuda_graph: bool = False
     """replay the SAC steps' gradients as CUDA graphs (GPU only): faster, eager's numbers"""
+    cuda_graph_whole: bool = False
+    """with --cuda-graph: the whole SAC update as one graph, Adam inside (not yet run on a GPU)"""
     parallel_eval: bool = False
     """step the evaluation envs at once, each in its own process: the same returns"""
     track: bool = False
@@ -820,7 +818,7 @@ def sac_update(agent: Agent, data: Batch, loop: Loop, args: Args):
 
     `--compile` and `--cuda-graph` replace the three step functions it calls (`critic_gradients`,
     `actor_gradients`, `target_update`) with compiled or captured versions of themselves. From the
-    step on which Adam's host scalars settle, `--cuda-graph` also replays it whole, Adam inside."""
+    step on which Adam's host scalars settle, `--cuda-graph-whole` replays it whole, Adam inside."""
     loop.losses.update(critic_gradients(agent, data, args.gamma))
     agent.q_optimizer.step()
     loop.sac_updates += 1
@@ -914,6 +912,8 @@ def validate_args(args: Args) -> None:
         args.resumable = args.query_log = True
     if args.tf32 and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--tf32: TF32 matmuls need a CUDA GPU, and this run is on the CPU")
+    if args.cuda_graph_whole and not args.cuda_graph:
+        raise ValueError("--cuda-graph-whole needs --cuda-graph")
     if args.cuda_graph and not (args.cuda and torch.cuda.is_available()):
         raise ValueError("--cuda-graph: CUDA graphs need a CUDA GPU, and this run is on the CPU")
     if args.run_name is not None and (args.run_name in ("", ".", "..") or "/" in args.run_name):
@@ -976,7 +976,7 @@ def validate_args(args: Args) -> None:
         "reward_topology_period", "agent_topology_period",
         "episode_length", "ensemble_size", "reward_layers", "reward_epochs", "feedback_freq",
         "eval_freq", "eval_episodes", "segment_episodes", "log_freq", "actor_update_freq",
-        "target_update_freq", "hidden_layers", "diagnostic_transitions", "diagnostic_pairs",
+        "target_update_freq", "hidden_layers",
     ):
         if getattr(args, flag) < 1:
             raise ValueError(f"--{flag.replace('_', '-')} must be >= 1, got {getattr(args, flag)}")
@@ -1044,6 +1044,41 @@ def check_finite(values: dict, step: int):
     bad = next((name for name, value in values.items() if not math.isfinite(value)), None)
     if bad is not None:
         raise NonFinite(f"non-finite {bad} ({values[bad]}) at step {step}")
+
+
+class Progress:
+    """The console's progress line: at each phase change and at most every `interval` seconds of
+    training, the step of the total, the phase, SPS since the last line, the ETA at that rate, the
+    feedback used of `budget` (PbRL) and the last evaluation's return. Host values only: no sync."""
+
+    def __init__(self, total_steps: int, phases: dict, last_phase: str, step: int, seconds: float,
+                 budget: Optional[int] = None, interval: float = 30.0):
+        # `phases`: each phase's name and the step it ends at, in order; then `last_phase`
+        self.total_steps, self.phases, self.last_phase = total_steps, phases, last_phase
+        self.step, self.time, self.budget, self.interval = step, seconds, budget, interval
+        self.phase = None
+
+    def update(self, step: int, loop: Loop, start_time: float):
+        """At `step`; `start_time`: the training clock's start, plus any waits for labels."""
+        seconds = time.time() - start_time
+        phase = next((name for name, end in self.phases.items() if step < end), self.last_phase)
+        if phase == self.phase and seconds - self.time < self.interval:
+            return
+        moved = step > self.step and seconds > self.time
+        sps = (step - self.step) / (seconds - self.time) if moved else 0.0
+        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
+        feedback = f" | feedback {loop.total_feedback}/{self.budget}" if self.budget else ""
+        line = f"progress: step {step}/{self.total_steps} ({100 * step / self.total_steps:.0f}%)"
+        line += f" | {phase} | {sps:.0f} SPS | ETA {eta}{feedback} | eval return "
+        eval_return = loop.last_eval.get("eval/episodic_return")
+        print(line + ("-" if eval_return is None else f"{eval_return:.1f}"), flush=True)
+        self.phase, self.step, self.time = phase, step, seconds
+
+    @staticmethod
+    def duration(seconds: float) -> str:
+        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
+        return (f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
+                else f"{hours}h{minutes:02d}m" if hours else f"{minutes}m")
 
 
 def log_evaluation(writer: SummaryWriter, global_step: int, actor: Actor, envs: list,
@@ -1122,7 +1157,8 @@ if __name__ == "__main__":
         torch.cuda.set_stream(torch.cuda.Stream())  # on a stream of its own, as a capture needs
         critic_gradients, actor_gradients, target_update = map(harness("cuda_graph").CudaGraph,
                                                                steps)
-        sac_update = harness("cuda_graph").WholeUpdate(sac_update)  # Adam inside, once settled
+        if args.cuda_graph_whole:  # the whole update, Adam inside, once settled
+            sac_update = harness("cuda_graph").WholeUpdate(sac_update)
 
     device = torch.device("cuda" if torch.cuda.is_available() and args.cuda else "cpu")
     if args.threads is not None or device.type == "cpu":  # default threads oversubscribe cores
@@ -1164,10 +1200,14 @@ if __name__ == "__main__":
     start_time = time.time() - elapsed  # SPS counts the time spent training only
     obs = torch.as_tensor(obs, device=device)
     pebble_start = args.learning_starts + args.unsup_steps
+    progress = Progress(args.total_timesteps, {"random": args.learning_starts,
+                                               "pre-training": pebble_start}, "PbRL",
+                        start_step, elapsed, args.max_feedback)
     try:
         for global_step in range(start_step, args.total_timesteps):
             if run:
                 run.step_starts(global_step, start_time)
+            progress.update(global_step, loop, start_time + (run.waited if run else 0.0))
             # ALGO LOGIC: put action logic here
             if global_step < args.learning_starts:
                 action = env.action_space.sample()

@@ -1,5 +1,5 @@
 """`--diagnostics`: what a run logs to explain its numbers, computed apart from training so that
-a run's numbers are the same with or without it (docs/running.md, "Diagnostics").
+a run's numbers are the same with or without it (docs/running.md, "Watching a run").
 
 - `pbrl/reward_true_corr`, `pbrl/heldout_accuracy`: how well the reward ensemble tracks the true
   reward, after each feedback round;
@@ -7,6 +7,9 @@ a run's numbers are the same with or without it (docs/running.md, "Diagnostics")
 - `features/{net}/relevant_weight_frac` and `features/{net}/chance`: the share of each input
   layer's absolute weight on the real features and actions, at each evaluation."""
 import torch
+
+TRANSITIONS = 10_000  # stored transitions behind `pbrl/reward_true_corr`, at fixed relative positions
+PAIRS = 256  # new pairs per round for `pbrl/heldout_accuracy`: oracle labels, not trained on or counted
 
 
 def read_noisy(x: torch.Tensor, noise) -> torch.Tensor:

@@ -4,7 +4,7 @@ points: when it opens the run, when it starts or restores it, at each step's sta
 feedback round's teacher, at each evaluation, and when it stops.
 
 - `--resumable`: `state.pt` every `--state-minutes` (or `--checkpoint-freq` steps), on SIGTERM
-  and SIGUSR2, and a resume from it (`resume`); a progress line with the ETA;
+  and SIGUSR2, and a resume from it (`resume`);
 - `--query-log`: every query asked, in `preferences/` (`query_log`);
 - `--diagnostics`: the reward's and the input layers' diagnostics (`diagnostics`);
 - `--teacher external`: a person's or a program's labels through files (`external_teacher`);
@@ -21,51 +21,6 @@ from typing import Optional
 import torch
 
 from r2n_harness import diagnostics, query_log, resume
-
-
-class Progress:
-    """A console line at every phase change and at most every `interval` seconds of
-    training: step / total, phase, SPS since the last line, ETA at that rate, feedback
-    used and the latest evaluation return. Its clock is the run's training time
-    (`seconds`, waits for labels excluded), and it reads host values only, so it adds no
-    host sync to the training loop. With `on_step`, it also calls `on_step(step, seconds)`
-    at every step: the labelling page's status of a run that a person labels."""
-
-    def __init__(
-        self, total_steps: int, budget: Optional[int] = None, interval: float = 30.0, on_step=None
-    ):
-        self.total_steps = total_steps
-        self.budget = budget
-        self.interval = interval
-        self.on_step = on_step
-        self.phase, self.time, self.step, self.eval_return = None, 0.0, 0, None
-
-    def update(self, step: int, phase: str, seconds: float, feedback: Optional[int] = None):
-        if self.on_step is not None:
-            self.on_step(step, seconds)
-        now = seconds
-        if phase == self.phase and now - self.time < self.interval:
-            return
-        moved = step > self.step and now > self.time
-        sps = (step - self.step) / (now - self.time) if moved else 0.0
-        percent = 100 * step / self.total_steps
-        line = f"progress: step {step}/{self.total_steps} ({percent:.0f}%) | {phase} | "
-        eta = self.duration((self.total_steps - step) / sps) if sps else "?"
-        line += f"{sps:.0f} SPS | ETA {eta}"
-        if self.budget is not None:
-            line += f" | feedback {feedback}/{self.budget}"
-        line += " | eval return " + ("-" if self.eval_return is None else f"{self.eval_return:.1f}")
-        print(line, flush=True)
-        self.phase, self.time, self.step = phase, now, step
-
-    @staticmethod
-    def duration(seconds: float) -> str:
-        minutes, hours = int(seconds) // 60 % 60, int(seconds) // 3600
-        return (
-            f"{hours // 24}d{hours % 24:02d}h" if hours >= 24
-            else f"{hours}h{minutes:02d}m" if hours
-            else f"{minutes}m"
-        )
 
 
 def catch_stop_signals() -> list:
@@ -135,34 +90,22 @@ class Run:
             self.external = ExternalTeacher(self.folder, args, self.stop_signals, self.stop)
         if self.pbrl and args.diagnostics:  # the buffer's rows behind `pbrl/reward_true_corr`
             generator = torch.Generator().manual_seed(args.seed)
-            self.positions = torch.rand(args.diagnostic_transitions, generator=generator).to(device)
-        budget = args.max_feedback if self.pbrl else None
-        self.progress = Progress(args.total_timesteps, budget,
-                                 on_step=self.external.training if self.external else None)
+            self.positions = torch.rand(diagnostics.TRANSITIONS, generator=generator).to(device)
         self.last_state = time.monotonic()  # the clock of `--state-minutes`
         if self.resume is None:
             obs, _ = envs[0].reset(seed=args.seed)
             return obs, 0, 0.0
         obs, start_step, elapsed = resume.restore_run(self.resume, saved, envs, args, device,
                                                       writer)
-        self.progress.step, self.progress.time = start_step, elapsed
-        self.progress.eval_return = saved["loop"].last_eval.get("eval/episodic_return")
         self.resume = None
         return obs, start_step, elapsed
 
     def step_starts(self, global_step: int, start_time: float):
-        """The progress line (`--resumable`), and the labelling page's status of the run."""
-        args, loop = self.args, self.saved["loop"]
+        """The labelling page's status of the run (`--teacher external`): its step and training
+        time (the waits for labels left out)."""
         self.step = global_step
-        if not args.resumable:  # (`--teacher external` turns it on)
-            return
-        pebble_start = args.learning_starts + getattr(args, "unsup_steps", 0)
-        phase = ("random" if global_step < args.learning_starts
-                 else "pre-training" if global_step < pebble_start
-                 else "PbRL" if self.pbrl else "SAC")
-        self.progress.eval_return = loop.last_eval.get("eval/episodic_return")
-        self.progress.update(global_step, phase, time.time() - start_time - self.waited,
-                             loop.total_feedback if self.pbrl else None)
+        if self.external:
+            self.external.training(global_step, time.time() - start_time - self.waited)
 
     def teacher(self, ask):
         """A feedback round's teacher: a person or a program through files (`--teacher
@@ -213,7 +156,7 @@ class Run:
                                    diagnostics.optimizer_steps(saved["reward_optimizer"]), step)
             diagnostics.log_reward_diagnostics(
                 self.writer, step, args.seed, saved["reward_model"], saved["rb"],
-                saved["episodes"], self.positions, args.diagnostic_pairs, args.segment_size)
+                saved["episodes"], self.positions, diagnostics.PAIRS, args.segment_size)
         self.round_step = None
         if not args.resumable:
             return

@@ -16,7 +16,7 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from test_scripts import (COMMON_TAGS, ROOT, SPARSE_NETS, SPARSE_TAGS, SPARSE_TINY, TINY,  # noqa: E402
-                          TOPOLOGY_TAGS, run_script, scalars)
+                          TOPOLOGY_TAGS, check_progress, run_script, scalars)
 
 import dropconnect_pebble  # noqa: E402
 import l1_pebble  # noqa: E402
@@ -73,6 +73,7 @@ def test_smoke_reaches_every_phase(script, smoke_runs):
     assert values["pbrl/labeled_feedback"][-1] == 20
     assert len(values["eval/episodic_return"]) == 3
     assert result.stdout.count("eval_return=") == 3
+    check_progress(result.stdout)
 
     checkpoint = torch.load(os.path.join(run_dir, "smoke.cleanrl_model"), weights_only=False)
     for key in ("args", "actor", "qf1", "qf2", "reward_models", "obs_dim_real", "obs_dim", "act_dim"):

@@ -28,10 +28,13 @@ STEPS = ("critic_gradients", "actor_gradients", "target_update")
 
 
 @gpu
+@pytest.mark.parametrize("whole", [[], ["--cuda-graph-whole"]], ids=["steps", "whole"])
 @pytest.mark.parametrize("script", PBRL + ORACLES)
-def test_captured_run_equals_eager(script, tmp_path):
+def test_captured_run_equals_eager(script, whole, tmp_path):
+    """`--cuda-graph` (the three steps as graphs), and with `--cuda-graph-whole` the whole update replayed: every
+    point and final weight as eager's, bit for bit."""
     runs = {}
-    for mode, flags in (("eager", []), ("graph", ["--cuda-graph"])):
+    for mode, flags in (("eager", []), ("graph", ["--cuda-graph", *whole])):
         run_script(script, ARGS[script] + ["--cuda", "--seed", "3", "--run-name", mode, "--save-model", *flags], tmp_path)
         runs[mode] = scalars(str(tmp_path / "runs" / mode))
     assert runs["eager"].keys() == runs["graph"].keys()
@@ -417,7 +420,7 @@ def test_whole_update_equals_eager(script, monkeypatch, run_stream):
     whole = WholeUpdate(module.sac_update)
     for arm, update in (("eager", lambda data: module.sac_update(eager, data, eager_loop, args)),
                         ("whole", lambda data: whole(agent, data, loop, args))):
-        if arm == "whole":  # as `--cuda-graph` runs it: the steps captured apart, inside the whole capture too
+        if arm == "whole":  # as `--cuda-graph-whole` runs it: the steps captured apart, inside the whole capture too
             captured(module, monkeypatch)
         torch.manual_seed(1)  # one random stream for both
         for step in range(30):

@@ -148,7 +148,7 @@ HARNESS_MODULES = {  # the run harness's package: what each module defines, and 
     "resume": ["open_state", "state_of", "load_state_", "save_state", "restore_run", "state_due"],
     "query_log": ["QueryLog", "log_queries", "write_npz"],
     "diagnostics": ["log_reward_diagnostics", "input_layers", "relevant_weight_frac", "weight_shares"],
-    "run": ["Run", "Progress", "catch_stop_signals"],
+    "run": ["Run", "catch_stop_signals"],  # the progress line is each script's own (a copy prints it)
 }
 
 

@@ -19,8 +19,8 @@ import pytest
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from test_scripts import (COMMON_TAGS, ROOT, TINY, check_harness_flag_stops_a_copy, run_script,  # noqa: E402
-                          scalars)
+from test_scripts import (COMMON_TAGS, ROOT, TINY, check_harness_flag_stops_a_copy, check_progress,  # noqa: E402
+                          run_script, scalars)
 
 import anf_sac  # noqa: E402
 import ene  # noqa: E402
@@ -99,6 +99,7 @@ def test_oracle_smoke_run(script, pipeline):
         assert not [tag for tag in values if tag.startswith("sparse/")]
     assert len(values["eval/episodic_return"]) == 3  # at 500, 1000, 1500
     assert result.stdout.count("eval_return=") == 3 and "feedback=" not in result.stdout
+    check_progress(result.stdout, ("random", "SAC"))
 
     module = sac if script == "sac.py" else anf_sac
     checkpoint = checkpoint_of(run_dir, script[:-3])
@@ -275,7 +276,7 @@ PBRL_FIELDS = {
     "segment_episodes", "query_sampling", "query_pool_multiplier", "ensemble_size", "reward_lr", "reward_hidden_dim",
     "reward_layers", "reward_batch_size", "reward_epochs", "reward_stop_accuracy", "relabel_batch_size",
     "teacher", "preferences", "teacher_beta", "teacher_gamma", "teacher_eps_mistake", "teacher_eps_skip", "teacher_eps_equal",
-    "diagnostic_transitions", "diagnostic_pairs", "query_log",
+    "query_log",
 }
 AGENT_FIELDS = {"agent_sparsity", "agent_drop_fraction", "agent_topology_period"}
 

@@ -13,7 +13,8 @@ from test_scripts import DEVICE, ROOT, SPARSE_TINY, TINY, run_script
 
 import benchmark  # noqa: E402
 import pebble  # noqa: E402
-from r2n_harness.run import Progress  # noqa: E402
+
+Progress = pebble.Progress  # every script's, byte for byte
 
 # Tensor methods that read a tensor back to the host (a device sync on a GPU).
 HOST_READS = ["item", "tolist", "cpu", "numpy", "__bool__", "__float__", "__int__"]
@@ -112,15 +113,46 @@ def test_progress_duration_text():
     assert Progress.duration(50 * 3600) == "2d02h"
 
 
-def test_progress_prints_at_phase_changes_and_reports_sps_eta(capsys):
-    progress = Progress(total_steps=10_000, budget=400)
-    progress.update(0, "random", 0.0, 0)
-    progress.update(1000, "pre-training", 40.0, 0)  # 1000 steps in 40 s of training: 25 SPS, 9000 steps left: 6 min
-    progress.eval_return = 12.34
-    progress.update(1001, "pre-training", 40.0, 0)  # same phase, 0 s later: no line
+def progress_at(progress, monkeypatch, step: int, seconds: float, last_eval: dict, feedback: int = 0):
+    """`progress.update` at `step`, `seconds` of training after its clock's start (0), time itself faked."""
+    monkeypatch.setattr(pebble.time, "time", lambda: seconds)
+    loop = pebble.Loop(total_feedback=feedback, last_eval=last_eval)
+    progress.update(step, loop, 0.0)
+
+
+def test_progress_prints_at_phase_changes_and_reports_sps_eta(capsys, monkeypatch):
+    progress = Progress(10_000, {"random": 500, "pre-training": 2000}, "PbRL", step=0, seconds=0.0, budget=400)
+    progress_at(progress, monkeypatch, 0, 0.0, {})
+    progress_at(progress, monkeypatch, 1000, 40.0, {})  # pre-training: 1000 steps in 40 s of training, 25 SPS, 6 min
+    progress_at(progress, monkeypatch, 1001, 40.0, {"eval/episodic_return": 12.34})  # same phase, 0 s later: none
+    progress_at(progress, monkeypatch, 1500, 70.0, {"eval/episodic_return": 12.34})  # 30 s later: a line
+    progress_at(progress, monkeypatch, 2000, 71.0, {"eval/episodic_return": 12.34}, 10)  # a new phase: at once
     lines = capsys.readouterr().out.splitlines()
-    assert len(lines) == 2
-    assert lines[1] == "progress: step 1000/10000 (10%) | pre-training | 25 SPS | ETA 6m | feedback 0/400 | eval return -"
+    assert lines == [
+        "progress: step 0/10000 (0%) | random | 0 SPS | ETA ? | feedback 0/400 | eval return -",
+        "progress: step 1000/10000 (10%) | pre-training | 25 SPS | ETA 6m | feedback 0/400 | eval return -",
+        "progress: step 1500/10000 (15%) | pre-training | 17 SPS | ETA 8m | feedback 0/400 | eval return 12.3",
+        "progress: step 2000/10000 (20%) | PbRL | 500 SPS | ETA 0m | feedback 10/400 | eval return 12.3",
+    ]
+
+
+def test_progress_resumes_from_the_saved_step_and_time(capsys, monkeypatch):
+    """A resumed run's first rate counts from its saved step and training time; the oracles have no budget."""
+    progress = Progress(10_000, {"random": 500}, "SAC", step=4000, seconds=200.0)
+    progress_at(progress, monkeypatch, 4000, 200.0, {"eval/episodic_return": 50.0})
+    progress_at(progress, monkeypatch, 4600, 230.0, {"eval/episodic_return": 50.0})
+    assert capsys.readouterr().out.splitlines() == [
+        "progress: step 4000/10000 (40%) | SAC | 0 SPS | ETA ? | eval return 50.0",
+        "progress: step 4600/10000 (46%) | SAC | 20 SPS | ETA 4m | eval return 50.0",
+    ]
+
+
+@pytest.mark.parametrize("script", ["pebble.py", "surf.py", "sac.py"])
+def test_progress_counts_training_time_only(script):
+    """The main loop hands the progress line its training clock: a person's waits for labels (`run.waited`) left out,
+    as the evaluation's SPS leaves them out."""
+    source = open(os.path.join(ROOT, script)).read()
+    assert source.count("progress.update(global_step, loop, start_time + (run.waited if run else 0.0))") == 1
 
 
 def test_evaluation_of_a_non_finite_policy_returns_nan_instead_of_crashing_mujoco():

@@ -99,6 +99,16 @@ def tiny_args(script):
     return TINY + (SPARSE_TINY if script in SPARSE_SCRIPTS else [])
 
 
+def check_progress(stdout: str, phases=("random", "pre-training", "PbRL")):
+    """A default run's progress lines: one at each phase change, the second (past the random steps) with a rate and
+    an ETA, before the first evaluation line."""
+    progress = [line for line in stdout.splitlines() if line.startswith("progress:")]
+    assert [line.split(" | ")[1] for line in progress[: len(phases)]] == list(phases), progress
+    assert re.search(r"\| \d+ SPS \| ETA \d+m", progress[1]), progress[1]
+    assert stdout.index("progress:") < stdout.index("eval_return=")
+    assert ("feedback" in progress[0]) == ("PbRL" in phases)
+
+
 @pytest.mark.parametrize("script", PBRL_SCRIPTS)
 def test_smoke_reaches_every_phase(script, tmp_path):
     """A copy of the script, with ene.py alone and without this project, runs its method through every phase, and
@@ -114,7 +124,7 @@ def test_smoke_reaches_every_phase(script, tmp_path):
         assert all(math.isfinite(v) for v in values[tag]), f"{tag} has non-finite values {values[tag]}"
     assert not [tag for tag in values if tag in DIAGNOSTIC_TAGS or tag.startswith("features/")]
     assert sorted(os.listdir(run_dir))[1:] == ["smoke.cleanrl_model"]  # the event file, the checkpoint
-    assert "progress:" not in result.stdout
+    check_progress(result.stdout)  # the script's own progress line, without the harness
 
     # pre-training logged its intrinsic reward; every feedback round ran; the whole budget was asked
     assert values["pbrl/total_feedback"] == [5, 10, 15, 20]
@@ -159,7 +169,7 @@ def test_gpu_runs_have_a_gpu():
 
 def test_same_seed_same_run_with_or_without_the_harness(tmp_path):
     """The same seed twice, once with the harness's hooks (state, query log, diagnostics): every point of the method is
-    the same, and the harness adds its diagnostics, its progress lines and its files."""
+    the same, and the harness adds its diagnostics and its files, not a second progress line."""
     args = tiny_args("r2n_pebble.py") + ["--total-timesteps", "1500", "--eval-freq", "750", "--seed", "7"]
     runs, outputs = [], []
     for i, extra in enumerate(([], HARNESS)):
@@ -175,12 +185,13 @@ def test_same_seed_same_run_with_or_without_the_harness(tmp_path):
     # one reward topology update every 5 reward optimiser steps (the last round precedes the last evaluation)
     assert values["sparse/reward0/topology_updates"][-1] == values["pbrl/reward_steps"][-1] // 5 > 0
     assert sorted(os.listdir(tmp_path / "runs" / "det1" / "preferences")) == ["0.npz", "1.npz"]
-    # progress: a line at every phase change, with ETA, before the first evaluation
-    progress = [line for line in outputs[1].splitlines() if line.startswith("progress:")]
-    assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
-    assert outputs[1].index("progress:") < outputs[1].index("eval_return=")
-    assert re.search(r"\| \d+ SPS \| ETA \d+m \|", progress[1]) and "feedback 0/20" in progress[1], progress[1]
-    assert "progress:" not in outputs[0]
+    # progress: a line at every phase change, with ETA, before the first evaluation; one line, not the harness's too
+    for output in outputs:
+        progress = [line for line in output.splitlines() if line.startswith("progress:")]
+        assert [p.split(" | ")[1] for p in progress[:3]] == ["random", "pre-training", "PbRL"]
+        assert output.index("progress:") < output.index("eval_return=")
+        assert re.search(r"\| \d+ SPS \| ETA \d+m \|", progress[1]) and "feedback 0/20" in progress[1], progress[1]
+        assert len([p for p in progress if p.startswith("progress: step 0/")]) == 1
 
 
 def test_evaluation_envs_in_processes_give_the_same_run(tmp_path):

@@ -11,8 +11,8 @@ import torch.nn.functional as F
 
 import rune
 import surf
-from test_scripts import (COMMON_TAGS, ROOT, SPARSE_TAGS, SPARSE_TINY, TINY, TOPOLOGY_TAGS, run_script,
-                          scalars)
+from test_scripts import (COMMON_TAGS, ROOT, SPARSE_TAGS, SPARSE_TINY, TINY, TOPOLOGY_TAGS, check_progress,
+                          run_script, scalars)
 
 # TINY, shortened to two feedback rounds (500, 1000) and two evaluations (600, 1200); segments of 20 are stored as
 # 30 steps by SURF (crop 5), inside the 100-step episodes. SURF's tau is lowered so that pseudo-labels are kept.
@@ -38,6 +38,7 @@ def test_smoke_reaches_every_phase(script, tmp_path):
         assert all(math.isfinite(v) for v in values[tag]), f"{tag} has non-finite values {values[tag]}"
     assert values["pbrl/total_feedback"] == [5, 10]
     assert len(values["eval/episodic_return"]) == 2 and result.stdout.count("eval_return=") == 2
+    check_progress(result.stdout)
     if "rune" in script:  # logged every 100 steps from the first feedback round (500) on, with the decayed weight
         assert values["pbrl/beta"] == pytest.approx([rune.rune_beta(t, 0.05, 1e-5) for t in range(500, 1200, 100)])
         # the bonus's size, from the SAC updates after the first round on: beta x a mean population std

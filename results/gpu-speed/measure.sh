@@ -12,9 +12,10 @@
 #              unless PARTS names it)
 #   actor      the actor's step with and without the critics' weight gradients (actor_step.py) -> actor.txt (not run
 #              unless PARTS names it: its question was answered with --tf32)
-#   exact      eager against --cuda-graph, bit for bit, all 12 scripts (tests/test_cuda_graph.py) -> exact.csv
-#   window     a 20 000-step window of one captured run, the whole update replayed: steps/s, evaluations' and state
-#              writes' shares -> window.json
+#   exact      eager against --cuda-graph, and against --cuda-graph --cuda-graph-whole, bit for bit, all 12 scripts
+#              (tests/test_cuda_graph.py) -> exact.csv
+#   window     a 20 000-step window of one captured run (the whole update replayed with
+#              EXTRA_FLAGS=--cuda-graph-whole): steps/s, evaluations' and state writes' shares -> window.json
 #   aggregate  steady-state steps/s of 1, 4 and 8 runs at once, without and with MPS, and 8 at 256 wide started by
 #              benchmark.py with MPS -> aggregate.csv (one row per configuration, written as each ends)
 #   resume     exact resume under --cuda-graph (issue 44's item 7: surf.py once differed after a SIGKILL): rounds of
@@ -70,7 +71,8 @@ else
   gpu=(--cuda-graph)
   items_steps=(2200 2800)
   items_flags=(--eval-freq 1000 --parallel-eval)  # its evaluations time --parallel-eval; the window's the serial one
-  # the whole update replays once the critic's new Adam (the reset at step 2 000) has settled, near step 18 630
+  # with EXTRA_FLAGS=--cuda-graph-whole the whole update replays once the critic's new Adam (the reset at step
+  # 2 000) has settled, near step 18 630
   window_steps=(20000 40000)
   window_flags=(--total-timesteps 40100 --checkpoint-freq 10000 --resumable)  # the default evaluations: every 5000 steps
   window_rounds=(22000 27000 32000 37000)

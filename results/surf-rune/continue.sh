@@ -6,7 +6,8 @@
 #   bash results/surf-rune/continue.sh --dry-run      # how many runs are left, nothing started
 #
 # 1. A git worktree at the protocol's commit (made once), holding a copy of the committed runs, so that the launcher
-#    skips them: `benchmark.py --preset surf-rune --workers 2` there, one torch thread a run, at the lowest priority.
+#    skips them: `benchmark.py --preset surf-rune --workers 2` there, one torch thread a run, at the lowest priority
+#    (nice 19 on the launcher's and each run's autogroup, so that the machine's other work comes first).
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
 #    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
@@ -23,6 +24,13 @@ mode=${1:-}
 [[ $mode = --dry-run || $mode = --watch ]] && shift || mode=""
 work=$(realpath -m "${1:-$(dirname "$main")/surf-rune-$COMMIT}")
 cd "$main"
+
+lowest_priority() {  # the launcher and each run are sessions of their own, so `nice` alone yields only in-session
+    local pid
+    for pid in "$1" $(pgrep -f "$work/" || true); do
+        echo 19 > "/proc/$pid/autogroup" 2> /dev/null || true
+    done
+}
 
 watch() {  # until the launcher has stopped and every finished run is committed
     local launcher running id folder cpu seconds message
@@ -50,6 +58,7 @@ watch() {  # until the launcher has stopped and every finished run is committed
             fi
         done
         [ -n "$running" ] || return 0
+        lowest_priority "$launcher"
         sleep 60
     done
 }
@@ -71,5 +80,6 @@ if [ "$mode" = --dry-run ]; then
 fi
 (cd "$work" && setsid nohup nice -n 19 python benchmark.py --preset surf-rune --workers 2 \
     > "$work/launcher.log" 2>&1 < /dev/null & echo $! > "$work/launcher.pid")
+lowest_priority "$(cat "$work/launcher.pid")"
 setsid nohup bash "$main/$STUDY/continue.sh" --watch "$work" >> "$work/watcher.log" 2>&1 < /dev/null &
 echo "launcher: $work/launcher.log; watcher: $work/watcher.log; the runs' logs: $work/logs/"
