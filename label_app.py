@@ -7,7 +7,8 @@ It shows the pending round's queries one at a time: the two segments as clips, s
 offscreen renderer from the physics states stored with each query. The answer is left, right, equal or skip, by
 mouse or keyboard (arrow keys, `=`/space, `s` or `S`; a key with Ctrl, Alt or Meta is the browser's, never an
 answer; Enter or Space on a focused button presses that button); the answer buttons and keys wait until both clips
-of the query have loaded and been shown for a second (the next query's clips are fetched ahead), and a key held down
+of the query have loaded and been shown for a second (the next query's clips are fetched ahead; a line says while
+they are drawn, and why one did not load: the app's own sentence, or that it does not answer), and a key held down
 answers once. Backspace or "undo" takes back the last answer; after the last query "submit round r" (or Enter)
 writes `labels/{round}.json`, which the run is waiting for, and the page waits for the next round. Standard library
 only (plus the project's numpy, imageio and dm_control): the training scripts need no web dependency.
@@ -21,13 +22,19 @@ Labels you can trust:
   `labels/{round}.json`, which fails if that file exists: a valid labels file (a JSON list of one answer per query,
   each exactly 0, 1, 0.5 or "skip", the rule the run reads by, with the digest of the queries it answers: the page
   sends it) is final, and a second answer to its round (another tab, another app, a script) gets HTTP 409 and
-  changes nothing. So do answers to queries that the round's file no longer holds (it was replaced). It gets the
-  mode of the run's other files (0666 less the umask).
+  changes nothing. So do answers to other queries than the round's: those the run wrote while it waits for the
+  round (its `teacher.json` names their digest; another file may lie in their place for a moment, until the run
+  writes its own again), else those of the round's file (`round_queries`). Answers that name no queries get HTTP
+  400: the run would take them for whatever queries it holds. It gets the mode of the run's other files (0666 less
+  the umask).
 - A person's answers live in the page until the app says they are saved: the tab keeps them (sessionStorage: each
   tab its own, by run and round, for the round's queries only), so a reload or a failed submit (HTTP 500, the app
   gone) loses none, and the page says what failed; a closed tab keeps them only if the browser reopens it
-  ("reopen closed tab"). A 200 drops them; a 409, a round answered elsewhere or new queries for the round (which
-  the page notices within a poll, 2 s) drop them once the page has said so.
+  ("reopen closed tab"). A 200 drops them, and so does a 409 for a round already answered; a round answered
+  elsewhere or new queries for the round (which the page notices within a poll, 2 s) drop them once the page has
+  said so. Any other refusal keeps them, as a failed submit does; the state, asked at once, then says whether the
+  round still waits for the queries they answer. A round the page saved that waits again (the run set its labels
+  aside) is said so, not left as "saved".
 - The tabs of one browser tell each other (BroadcastChannel) which round they answer and their answers so far: a
   tab shows at once that another tab is answering its round, with that tab's answers, before effort is spent twice.
 - Only the page's own origin can write labels. Every request must name the app's address in its Host header (a
@@ -45,10 +52,10 @@ Labels you can trust:
 - A bad request gets its HTTP code and one line (404, 400, 403, 405 for methods other than GET, HEAD and POST, 413
   above 64 KiB, 415), never a traceback, and the app serves on; a port in use is one line on stderr and exit code 1.
 
-The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file; a round's number
-is written as the run writes it (`00` is no round). The app reads
-`teacher.json` (keys task, run, pid, host, phase, round, queries, asked, labelled, budget, step, total_steps, message,
-updated; written by the run) but never writes it.
+The pending round is the lowest round with queries (`queries/{round}.npz`) and no valid labels file for its queries
+(`round_queries`); a round's number is written as the run writes it (`00` is no round). The app reads `teacher.json`
+(keys task, run, pid, host, phase, round, queries, digest, asked, labelled, budget, step, total_steps, message,
+updated; written by the run; an older run's has no digest) but never writes it.
 
 It binds to localhost. On a remote machine, forward the port: `ssh -L 8000:localhost:8000 host`, then open
 http://localhost:8000 on your own (the Host check takes any port: a tunnel may forward another one). Without a
@@ -101,8 +108,8 @@ class Args:
     fps: int = 25
     """frames per second of the clips"""
     clip_cache_mb: float = 256
-    """megabytes of rendered clips kept in memory (about 0.35 MB a clip), the least recently shown dropped first;
-    a dropped clip is rendered again when asked for"""
+    """megabytes of rendered clips kept in memory (a cartpole clip takes about 0.33 MB at 20 steps, 0.9 MB at 50), the
+    least recently shown dropped first; a dropped clip is rendered again when asked for"""
 
 
 class Refused(Exception):
@@ -300,13 +307,17 @@ WRITING = threading.Lock()  # the app's own writers, one at a time; the hard lin
 
 def write_labels(run_dir: str, round_index: int, body: bytes):
     """Write the answers in `body` as the round's labels file, once, with the digest of the queries they answer:
-    Refused(409) if a valid one exists, or if `body` names other queries than the round's (its file was replaced
-    after the page showed it); ValueError if the answers are not valid. A reader (the run) sees no file or the whole
-    file, never a part. A body without a digest (a script's) is written as it came, unbound."""
+    Refused(409) if a valid one exists, or if `body` names other queries than the round's (`round_queries`: the run's
+    while it waits for them, else its file's); ValueError if the answers are not valid, Refused(400) if they name no
+    queries. A reader (the run) sees no file or the whole file, never a part."""
     queries = read_queries(run_dir, round_index)
-    n = queries.n
+    n, expected = round_queries(round_index, queries, awaited(read_teacher(run_dir)[0]))
     answers, digest = parse_labels(body, n)
-    mismatch = answering(digest, queries.digest)
+    if digest is None:  # a bare list would bind the answers to whatever queries the run holds when it reads them
+        raise Refused(400, f'round {round_index}\'s answers were not saved: they name no queries; send {{"queries": '
+                           f'digest, "answers": [...]}} with the digest of the queries answered, as the page does (a '
+                           f'program may write a bare list to labels/{round_index}.json itself)')
+    mismatch = answering(digest, expected)
     if mismatch is not None:
         raise Refused(409, f"round {round_index}'s answers were not saved: {mismatch}; the page shows the new ones")
     path = labels_path(run_dir, round_index)
@@ -324,7 +335,7 @@ def write_labels(run_dir: str, round_index: int, body: bytes):
                     return
                 except FileExistsError:
                     try:
-                        answered = keeps_existing(path, n, queries_digest=queries.digest)
+                        answered = keeps_existing(path, n, queries_digest=expected)
                     except OSError as e:  # a folder in the way: the person moves it, the page keeps the answers
                         raise Refused(500, unreadable(round_index, e)) from None
                     if answered:
@@ -345,8 +356,9 @@ def create_temporary(folder: str, prefix: str) -> tuple:
             pass
 
 
+# what the run writes in teacher.json; and `digest`, which an older run's lacks (read_teacher makes it None)
 TEACHER_KEYS = ("task", "run", "pid", "host", "phase", "round", "queries", "asked", "labelled", "budget", "step",
-                "total_steps", "message", "updated")  # what the run writes in teacher.json
+                "total_steps", "message", "updated")
 
 
 def read_teacher(run_dir: str) -> tuple:
@@ -376,7 +388,37 @@ def read_teacher(run_dir: str) -> tuple:
         return None, f"updated is {json.dumps(teacher['updated'])}, not a number"
     if isinstance(teacher["pid"], bool) or not isinstance(teacher["pid"], int) or not 0 < teacher["pid"] < 2 ** 31:
         return None, f"pid is {json.dumps(teacher['pid'])}, not a positive whole number"
+    digest = teacher.setdefault("digest", None)
+    if digest is not None and not (isinstance(digest, str) and re.fullmatch(r"[0-9a-f]{16}", digest)):
+        return None, f"digest is {json.dumps(digest)}, not a digest of 16 hex digits"
     return teacher, None
+
+
+def awaited(teacher: Optional[dict]) -> Optional[tuple]:
+    """(round, number of queries, digest) of the queries the run wrote and waits for, by its `teacher.json`; None if
+    it waits for none or does not say which (an older run's names no digest)."""
+    if teacher is None or teacher["phase"] != "waiting" or teacher["digest"] is None:
+        return None
+    r, n = teacher["round"], teacher["queries"]
+    if not all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (r, n)):
+        return None
+    return r, n, teacher["digest"]
+
+
+def round_queries(round_index: int, queries: Queries, waiting: Optional[tuple]) -> tuple:
+    """(n, digest) of round `round_index`'s queries: those the run wrote while it waits for them (`waiting`, from
+    `awaited`), else those of its queries file (`queries`). Answers are taken for these queries only: the run reads
+    a labels file by the same digest, whatever file lies in the queries' place for a moment."""
+    if waiting is not None and waiting[0] == round_index:
+        return waiting[1], waiting[2]
+    return queries.n, queries.digest
+
+
+def not_the_runs(round_index: int, held: str, runs: str) -> str:
+    """What a person learns when round `round_index`'s queries file holds the queries of digest `held` while the run
+    waits for its own (`runs`)."""
+    return (f"queries/{round_index}.npz is not the file the run wrote for round {round_index} (it holds the queries "
+            f"of digest {held}; the run's are {runs}): the run writes its own again at its next look")
 
 
 def alive(pid: int) -> bool:
@@ -402,20 +444,25 @@ def silent_for(teacher: dict) -> Optional[float]:
 
 
 def state(run_dir: str) -> dict:
-    """What the page shows, as `/api/state` answers it: the pending round from the files, the run's status from its
-    `teacher.json` when it has one."""
+    """What the page shows, as `/api/state` answers it: the pending round from the files (its queries by
+    `round_queries`), the run's status from its `teacher.json` when it has one."""
     teacher, problem = read_teacher(run_dir)
+    waiting = awaited(teacher)
     pending, n, digest, malformed, blocked, answered, labels, task = None, None, None, None, None, 0, 0, None
+    foreign = None
     for r in rounds(run_dir):
         queries = read_queries(run_dir, r)
         task = queries.env_id
+        round_n, round_digest = round_queries(r, queries, waiting)
         try:
-            answers, answered_digest = parse_labels(LABEL_FILES(labels_path(run_dir, r)), queries.n)
-            if (mismatch := answering(answered_digest, queries.digest)) is not None:
+            answers, answered_digest = parse_labels(LABEL_FILES(labels_path(run_dir, r)), round_n)
+            if (mismatch := answering(answered_digest, round_digest)) is not None:
                 raise ValueError(mismatch)  # the run moves it aside and asks again
         except (OSError, ValueError) as e:  # FileNotFoundError: not answered yet
             if pending is None:
-                pending, n, digest = r, queries.n, queries.digest
+                pending, n, digest = r, round_n, round_digest
+                if queries.digest != round_digest:  # another file lies in the run's queries' place for a moment
+                    foreign = not_the_runs(r, queries.digest, round_digest)
                 malformed = str(e) if isinstance(e, ValueError) else None
                 blocked = None if isinstance(e, (ValueError, FileNotFoundError)) else unreadable(r, e)
             continue
@@ -426,7 +473,8 @@ def state(run_dir: str) -> dict:
         "task": teacher["task"] if teacher else task,  # None before the first round of a run without teacher.json
         "round": pending,  # the lowest round with queries and no valid labels file, or None
         "n": n,  # its number of queries
-        "queries_digest": digest,  # Queries.digest: the page keeps a round's answers for these queries only
+        "queries_digest": digest,  # round_queries' digest: the page keeps a round's answers for these queries only
+        "foreign": foreign,  # why its queries file is not the run's (`not_the_runs`), or None
         "malformed": malformed,  # why its labels file, if it has one, is not valid
         "blocked": blocked,  # why its labels file cannot be read (a folder in its place), and what to do; or None
         "rounds_answered": answered,  # rounds with a valid labels file
@@ -476,9 +524,13 @@ class Clips:
         iio.imwrite(buffer, frames, extension=".gif", duration=1000 / self.fps, loop=0)
         return buffer.getvalue()
 
-    @staticmethod
-    def key(round_index: int, queries: Queries, query: int, side: int, digest: Optional[str]) -> tuple:
-        if digest is not None and digest != queries.digest:  # a page that has not seen the new queries yet
+    def key(self, round_index: int, queries: Queries, query: int, side: int, digest: Optional[str]) -> tuple:
+        """The clip's key in `kept`; Refused(404) if the queries file does not hold the queries of `digest`."""
+        if digest is not None and digest != queries.digest:
+            waiting = awaited(read_teacher(self.run_dir)[0])
+            if waiting is not None and waiting[0] == round_index and waiting[2] == digest:  # the run's, not there
+                raise Refused(404, not_the_runs(round_index, queries.digest, digest))
+            # a page that has not seen the new queries yet
             raise Refused(404, f"round {round_index}'s queries have changed since the page asked for this clip: "
                                "it shows the new ones within 2 s")
         if query >= queries.n:
@@ -496,6 +548,7 @@ PAGE = """<!doctype html>
  button { font-size: 1.1em; margin: 0.5em 0.3em; padding: 0.4em 1em; }
  #progress { font-weight: bold; } #run { color: #555; }
  #notices p, #message:not(:empty) { background: #fff3cd; border-left: 4px solid #e0a800; padding: 0.4em 0.8em; }
+ #drawing { color: #555; }
 </style></head>
 <body>
 <h2 id="question" hidden>Which segment is better?</h2>
@@ -503,6 +556,7 @@ PAGE = """<!doctype html>
 <div id="notices"></div>
 <p id="progress">loading...</p>
 <p id="message"></p>
+<p id="drawing"></p>
 <div class="clips" id="clips" hidden>
  <div class="clip"><img id="left" alt="left clip"><div>left (first segment)</div></div>
  <div class="clip"><img id="right" alt="right clip"><div>right (second segment)</div></div>
@@ -521,6 +575,7 @@ const SHOWN_MS = 1000;  // a query takes answers once its clips have been shown 
                         // answer the next query, whose clips were fetched ahead and appear at once
 let state = null, timer = null;  // the app's last /api/state, and the next refresh
 let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
+let saved = null;  // the round this page saved last: should it wait again, the run did not take its labels
 let key = null, digest = null, storageProblem = null;  // where this tab keeps the answers, for which queries
 let shown = 0, ready = false, ahead = [];  // queries shown (a late image of an earlier one is ignored), whether
                                            // this one takes answers, the next one's clips
@@ -609,7 +664,7 @@ function enable(on) {
   for (const button of document.querySelectorAll("#answers button")) button.disabled = !on;
 }
 function hide() {  // no round on the page
-  ++shown; ready = false; enable(false);
+  ++shown; ready = false; enable(false); $("drawing").textContent = "";
   $("question").hidden = $("clips").hidden = $("answers").hidden = $("submit").hidden = $("undo").hidden = true;
   tell("mine");
 }
@@ -619,23 +674,40 @@ function show(attempt = 0) {  // the current query (one per answer so far), or t
   ready = false; enable(false);
   $("clips").hidden = true; $("question").hidden = $("answers").hidden = i === n; $("undo").hidden = i === 0;
   $("submit").hidden = i < n; $("submit").textContent = `\\u23ce submit round ${round}`;
-  if (i === n) { $("progress").textContent = `round ${round}: all ${n} answered`; return; }
+  if (i === n) {
+    $("progress").textContent = `round ${round}: all ${n} answered`; $("drawing").textContent = "";
+    return;
+  }
   $("progress").textContent = `round ${round}: query ${i + 1} of ${n}`;
+  if (!attempt) $("drawing").textContent = `the app is drawing the clips of query ${i + 1}...`;  // seconds, unkept
   const again = attempt ? `&try=${attempt}` : "";  // a new address: nothing of the failed load is reused
   $("left").src = clip(round, i, 0) + again; $("right").src = clip(round, i, 1) + again;
   Promise.all([$("left").decode(), $("right").decode()]).then(() => {
     if (token !== shown) return;
-    if (attempt) $("message").textContent = `the clips of query ${i + 1} loaded on try ${attempt + 1}`;
+    $("drawing").textContent = attempt ? `the clips of query ${i + 1} loaded on try ${attempt + 1}` : "";
     $("clips").hidden = false;
     if (i + 1 < n) ahead = [0, 1].map((side) => Object.assign(new Image(), {src: clip(round, i + 1, side)}));
     setTimeout(() => { if (token === shown) { ready = true; enable(true); } }, SHOWN_MS);
-  }, () => {  // the app stopped or is restarting, or it could not draw them (its output says why): try again
+  }, async () => {  // the app stopped or is restarting, or answers why not: say which, and try again
+    if (token !== shown) return;
+    const why = await whyNot([$("left").src, $("right").src]);
     if (token !== shown) return;
     const wait = RETRY_S[Math.min(attempt, RETRY_S.length - 1)];
-    $("message").textContent = `the clips of query ${i + 1} did not load (try ${attempt + 1}): the app does not ` +
-      `answer, or its output says why; trying again in ${wait} s`;
+    $("drawing").textContent = `the clips of query ${i + 1} did not load (try ${attempt + 1}): ${why}; ` +
+      `trying again in ${wait} s`;
     setTimeout(() => { if (token === shown) show(attempt + 1); }, 1000 * wait);
   });
+}
+async function whyNot(urls) {  // why a clip did not load: an image tells nothing, so the page asks again
+  for (const url of urls) {
+    try {
+      const reply = await fetch(url);
+      if (!reply.ok) return `HTTP ${reply.status}: ${await reply.text()}`;  // the app's sentence
+    } catch (error) {
+      return `the app does not answer (${error.message})`;
+    }
+  }
+  return "they load now";
 }
 function answer(choice) {
   if (round === null || !ready) return;
@@ -659,14 +731,13 @@ async function submit() {
     const reply = await fetch(`/api/labels/${round}`,
       {method: "POST", headers: {"Content-Type": "application/json"},
        body: JSON.stringify({queries: digest, answers})});  // the digest of the queries these answers are for
-    if (reply.ok || reply.status === 409) {  // saved, or refused for good: the answers are told about, then dropped
-      const refused = reply.ok ? "" : await reply.text();  // answered elsewhere, or the queries were replaced
+    const said = reply.ok ? "" : await reply.text();
+    if (reply.ok || reply.status === 409 && said.includes("already answered")) {  // saved, or answered for good
       $("message").textContent = reply.ok ? `round ${round} saved (labels/${round}.json)`
-        : refused.includes("already answered")
-        ? `round ${round} was already answered, perhaps in another tab: your answers for it were not used` : refused;
-      forget(); round = null; hide();
-    } else {
-      failure = `HTTP ${reply.status}: ${await reply.text()}`;
+        : `round ${round} was already answered, perhaps in another tab: your answers for it were not used`;
+      saved = reply.ok ? round : null; forget(); round = null; hide();
+    } else {  // kept: the state, asked at once, says whether the round still waits for the queries they answer
+      failure = `HTTP ${reply.status}: ${said}`;
     }
   } catch (error) {  // the app is not there
     failure = `the app does not answer: ${error.message}`;
@@ -690,6 +761,7 @@ function render() {
   $("run").textContent = `${state.task ?? "task not known yet"} \\u00b7 run ${state.run} \\u00b7 ` +
     `${state.labels} labels so far` + (t ? ` (budget ${t.budget})` : "");
   if (state.blocked !== null) notices.push(state.blocked);
+  if (state.foreign !== null) notices.push(state.foreign);
   if (state.malformed !== null)
     notices.push(`labels/${state.round}.json is not valid: ${state.malformed}. Submitting round ${state.round}'s ` +
                  `answers from this page replaces it (the old file is kept as labels/${state.round}.json.rejected-...).`);
@@ -713,6 +785,12 @@ async function refresh() {
       drop(`round ${round} was answered elsewhere (another tab, another app or a script)`);
     if (round !== null && !submitting && state.queries_digest !== digest)  // a new run in this run's folder
       drop(`round ${round}'s queries have changed (a new run in the folder ${state.run}?)`);
+    if (saved !== null && round === null && !submitting && state.round === saved) {  // its labels were set aside
+      const says = state.teacher?.phase === "waiting" && state.teacher.message;
+      $("message").textContent = `round ${saved} was saved, but labels/${saved}.json is no longer its answer` +
+        (says ? " (the run's line above says why)" : "") + `: answer round ${saved} again`;
+      saved = null;
+    }
     render();
     if (round === null && !submitting) {
       forgetAnswered();

@@ -2,6 +2,7 @@
 The run writes `queries/{round}.npz` and `teacher.json`; a person (`label_app.py`) or a program writes
 `labels/{round}.json`."""
 import hashlib
+import io
 import json
 import math
 import os
@@ -11,8 +12,6 @@ from typing import Optional
 
 import numpy as np
 import torch
-
-from r2n_harness.query_log import write_npz
 
 
 class ExternalTeacher:
@@ -44,13 +43,14 @@ class ExternalTeacher:
             time.sleep(0.05)
 
     def tell(self, phase: str, step: int, asked: int, labelled: int, round_index=None, queries=None,
-             message=None):
-        """Write `teacher.json`: what the labelling page shows."""
-        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, asked=asked,
-                        labelled=labelled, step=step, message=message))
+             message=None, digest=None):
+        """Write `teacher.json`: what the labelling page shows. While waiting, `digest` names the
+        queries this run wrote for the round: the page takes answers to those only."""
+        self.write(dict(self.run, phase=phase, round=round_index, queries=queries, digest=digest,
+                        asked=asked, labelled=labelled, step=step, message=message))
 
     def training(self, step: int, seconds: float):
-        """Called every step (`Progress.update`). While the run trains after a round, `teacher.json`
+        """Called every step (`Run.step_starts`). While the run trains after a round, `teacher.json`
         says the current step, rewritten every `step_seconds` of training (`seconds`) at most."""
         if (self.status is None or self.status["phase"] != "training"
                 or seconds - self.told < self.step_seconds):
@@ -71,17 +71,19 @@ class ExternalTeacher:
         """Write the round's queries, then wait for a valid labels file that answers them. A malformed
         one gets one line (and the page's notice), and the wait goes on. So does a valid one for other
         queries (its digest is not theirs): it is moved aside, never deleted, and the round is asked
-        again. A queries file replaced or removed meanwhile is said at once and written again. The
-        labels file is read by its content at every poll, not by its time stamp. Returns the answered
+        again. The queries file is known by its bytes: one that differs from what the run wrote, or
+        is gone, is said at once and written again. A bare list of answers names no queries: it is
+        read only at a look that finds the run's own queries file in place, else moved aside too. Both
+        files are read by their content at every poll, not by their time stamps. Returns the answered
         pairs' mask and labels (0 where skipped), both on the segments' device, the labels file's
         SHA-256 and the seconds waited. A stop signal raises `stopped`: the state written before the
         round resumes into it."""
         rows = segments.cpu().numpy()
         queries_file = f"{self.folder}/queries/{round_index}.npz"
-        arrays = dict(env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
-                      physics=physics, true_rewards=true_rewards.cpu().numpy())
-        write_npz(queries_file, **arrays)
-        digest, written = queries_digest(env_id, physics), file_stamp(queries_file)
+        written = npz_bytes(env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
+                            physics=physics, true_rewards=true_rewards.cpu().numpy())
+        write_bytes(queries_file, written)
+        digest = queries_digest(env_id, physics)
         path, n, started, seen, problem = (
             f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
         )
@@ -95,11 +97,13 @@ class ExternalTeacher:
                 raise self.stopped(f"stopped by {self.stop_signals[0]} while waiting for {path}; "
                                    f"the state before this round is saved: run the same command "
                                    f"with --run-name {self.run['run']} to resume")
-            if file_stamp(queries_file) != written and file_digest(queries_file) != digest:
+            # By its bytes, not its time stamp: another write may land between a write and a stat,
+            # or within one tick of it.
+            own = read_bytes(queries_file) == written
+            if not own:
                 print(f"queries: {queries_file} is no longer the file this run wrote for round "
                       f"{round_index} (digest {digest}); writing it again", flush=True)
-                write_npz(queries_file, **arrays)
-            written = file_stamp(queries_file)
+                write_bytes(queries_file, written)
             content = read_bytes(path)
             if content != seen:
                 seen = content
@@ -107,15 +111,20 @@ class ExternalTeacher:
                            else None if content is None else labels_problem(content, n))
                 if content is not None and problem is None:
                     answered = parse_labels(content)[1]
-                    if answered is None or answered == digest:
+                    if answered == digest or answered is None and own:
                         break
+                    # A bare list seen while other queries were in the file may answer those.
                     problem = (f"answers the queries of digest {answered}, not this round's "
-                               f"({digest}); kept as {move_aside(path, 'mismatch')}")
+                               f"({digest}); kept as {move_aside(path, 'mismatch')}"
+                               if answered is not None else
+                               f"a bare list, which names no queries, came while {queries_file} "
+                               f"was not the file this run wrote: it may answer those; kept as "
+                               f"{move_aside(path, 'unbound')}")
                     seen = None
                 if problem is not None:
                     problem = f"labels: {path}: {problem}; waiting for labels of {queries_file}"
                     print(problem, flush=True)
-            self.tell("waiting", step, asked, labelled, round_index, n, problem)
+            self.tell("waiting", step, asked, labelled, round_index, n, problem, digest)
             self.nap()
         answers = np.array([np.nan if a == "skip" else a for a in parse_labels(content)[0]],
                            np.float32)
@@ -134,13 +143,20 @@ def queries_digest(env_id: str, physics: np.ndarray) -> str:
     return hashlib.sha256(header + np.ascontiguousarray(physics).tobytes()).hexdigest()[:16]
 
 
-def file_stamp(path: str) -> Optional[tuple]:
-    """What changes when a file is written or replaced (None: there is none)."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
+def npz_bytes(**arrays) -> bytes:
+    """The bytes of `np.savez(arrays)`: the run keeps them to know its queries file by."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def write_bytes(path: str, content: bytes):
+    """Write `content` to a temporary file, then rename it to `path`: a reader sees the old file or
+    the whole new one."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(f"{path}.tmp", "wb") as f:
+        f.write(content)
+    os.replace(f"{path}.tmp", path)
 
 
 def file_digest(path: str) -> Optional[str]:
@@ -153,7 +169,7 @@ def file_digest(path: str) -> Optional[str]:
 
 
 def read_bytes(path: str) -> Optional[bytes]:
-    """A labels file's bytes; None if there is none (a folder in its place: empty)."""
+    """A file's bytes; None if there is none (a folder in its place: empty)."""
     if os.path.isdir(path):
         return b""
     try:

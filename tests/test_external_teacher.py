@@ -1,7 +1,7 @@
 """A person's labels and waiting time are safe (docs/labelling.md): the run records the SHA-256 of each
 labels file it trains on and a resume refuses a changed one; a state is written before every round, so SIGTERM
 while waiting, or a kill before any other state, resumes into the same queries; `teacher.json` says what the run
-does; the wait does not count in the progress line's rate."""
+does."""
 import hashlib
 import json
 import os
@@ -22,7 +22,6 @@ sys.path.insert(0, ROOT)
 from r2n_harness.external_teacher import ExternalTeacher, check_labels_unchanged  # noqa: E402
 from r2n_harness.preferences import read_preferences  # noqa: E402
 from r2n_harness.query_log import QueryLog  # noqa: E402
-from r2n_harness.run import Progress  # noqa: E402
 
 
 class Stopped(Exception):
@@ -146,29 +145,20 @@ def test_teacher_json_says_the_step_while_training(tmp_path):
     page polls every 2 s), not at every step; waiting, it is the wait's."""
     args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=1500)
     teacher = ExternalTeacher(str(tmp_path), args, [], Stopped)
-    progress = Progress(total_steps=1500, budget=10, on_step=teacher.training)  # as the main loop wires it
-    progress.update(0, "random", seconds=0.0, feedback=0)
+    teacher.training(0, 0.0)  # every step, as `Run.step_starts` calls it
     assert not (tmp_path / "teacher.json").exists()  # before the first round, the page reads the run's files
     teacher.tell("training", 500, asked=5, labelled=4)
     steps = []
     for step in range(501, 601):
-        progress.update(step, "PbRL", seconds=step / 16, feedback=5)  # 16 steps per second of training
+        teacher.training(step, step / 16)  # 16 steps per second of training
         steps.append(status(tmp_path)["step"])
     assert sorted(set(steps)) == [501, 533, 565, 597]  # at once, then every 2 s
     assert {key: status(tmp_path)[key] for key in ("phase", "asked", "labelled", "round")} == {
         "phase": "training", "asked": 5, "labelled": 4, "round": None}
     assert time.time() - status(tmp_path)["updated"] < 60
     teacher.tell("waiting", 1000, asked=5, labelled=4, round_index=1, queries=5)
-    progress.update(1000, "PbRL", seconds=1000.0, feedback=5)
+    teacher.training(1000, 1000.0)
     assert status(tmp_path)["phase"] == "waiting" and status(tmp_path)["step"] == 1000
-
-
-def test_the_progress_rate_counts_training_time_only(capsys):
-    progress = Progress(total_steps=10_000, interval=30.0)
-    progress.update(0, "PbRL", seconds=100.0)
-    progress.update(600, "PbRL", seconds=130.0)  # 600 steps in 30 s of training, however long a person took
-    line = capsys.readouterr().out.strip().splitlines()[-1]
-    assert "| 20 SPS | ETA 7m" in line, line
 
 
 def test_the_labels_sha256_are_kept_per_round_and_a_state_from_before_them_resumes():

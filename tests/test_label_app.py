@@ -89,6 +89,13 @@ def request(address, method, path, body=None, headers=None, reply_headers=False)
     return result if reply_headers else result[:2]
 
 
+def bound(run, round_index, answers):
+    """A POST body as the page sends it: the answers, with the digest of the round's queries file."""
+    import label_app
+
+    return json.dumps({"queries": label_app.read_queries(str(run), round_index).digest, "answers": answers}).encode()
+
+
 def page_answers(run, round_index):
     """The answers of a labels file that the page wrote: bound to the digest of the round's queries file."""
     import label_app
@@ -112,15 +119,31 @@ def test_label_app_writes_a_round_once(tmp_path):
     (run / "labels" / "0.json").write_bytes(written)
     with serve(run) as address:
         assert get_state(address)["round"] == 1
-        status, body = request(address, "POST", "/api/labels/0", b"[0, 0, 0]")
+        status, body = request(address, "POST", "/api/labels/0", bound(run, 0, [0, 0, 0]))
         assert status == 409 and body.decode() == ("round 0 is already answered (labels/0.json); a round's labels are "
                                                    "written once and never change")
         assert (run / "labels" / "0.json").read_bytes() == written
-        assert request(address, "POST", "/api/labels/1", b'[0.5, 1, "skip"]')[0] == 200
-        assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 409
-        assert json.loads((run / "labels" / "1.json").read_text()) == [0.5, 1, "skip"]
+        assert request(address, "POST", "/api/labels/1", bound(run, 1, [0.5, 1, "skip"]))[0] == 200
+        assert request(address, "POST", "/api/labels/1", bound(run, 1, [0, 0, 0]))[0] == 409
+        assert page_answers(run, 1) == [0.5, 1, "skip"]
         assert get_state(address)["round"] is None
     assert sorted(os.listdir(run / "labels")) == ["0.json", "1.json"]  # no temporary file left
+
+
+def test_label_app_refuses_answers_that_name_no_queries(tmp_path):
+    """Answers sent without the digest of the queries they answer would be bound to whatever queries the run holds
+    when it reads them: one line, HTTP 400, nothing written. A program may still write a bare list into `labels/`."""
+    run = make_run(tmp_path, (3,))
+    with serve(run) as address:
+        status, reply = request(address, "POST", "/api/labels/0", b"[0, 1, 0.5]")
+        assert status == 400 and reply.decode() == (
+            'round 0\'s answers were not saved: they name no queries; send {"queries": digest, "answers": [...]} with '
+            "the digest of the queries answered, as the page does (a program may write a bare list to labels/0.json "
+            "itself)")
+        assert not (run / "labels").exists() and get_state(address)["round"] == 0
+        (run / "labels").mkdir()
+        (run / "labels" / "0.json").write_text("[0, 1, 0.5]")  # a program's, by hand: the round is answered
+        assert get_state(address)["round"] is None
 
 
 def test_label_app_draws_a_gymnasium_segment_again_as_the_run_drew_it(tmp_path, monkeypatch):
@@ -217,7 +240,7 @@ def test_label_app_state_from_the_files_and_teacher_json(tmp_path):
         assert len(state.pop("queries_digest")) == 16
         assert state == {
             "run": "ext", "task": "cartpole-swingup", "round": 1, "n": 3,
-            "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "blocked": None,
+            "malformed": 'expected a list of 3 answers, each 0, 1, 0.5 or "skip"', "blocked": None, "foreign": None,
             "rounds_answered": 1, "labels": 2, "teacher": None, "teacher_problem": None, "silent_for": None}
         write_teacher(run, round=1, asked=3, labelled=2)
         state = get_state(address)
@@ -270,7 +293,7 @@ def test_label_app_writes_for_its_own_page_only(tmp_path):
     run = make_run(tmp_path, (3, 3, 3))
     with serve(run) as address:
         port = address.split(":")[1]
-        body = b"[0, 0, 0]"
+        body = bound(run, 0, [0, 0, 0])  # the three rounds hold the same queries
         length = {"Content-Length": str(len(body))}
         for headers, code in [
             ({**length, **JSON, "Origin": "http://evil.example"}, 403),
@@ -474,9 +497,11 @@ def test_label_app_clips_before_answers_and_undo_in_a_headless_browser(tmp_path)
             WebDriverWait(driver, 30).until(lambda d: text() == f"round 0: query {i} of 3")
             if fresh:
                 assert not answers_enabled(driver) and not clips.is_displayed()
+                assert text("drawing") == f"the app is drawing the clips of query {i}..."  # not a blank page
                 body.send_keys(Keys.ARROW_LEFT)  # not taken
             WebDriverWait(driver, 60).until(answers_enabled)
             assert text() == f"round 0: query {i} of 3" and clips.is_displayed() and driver.execute_script(loaded)
+            assert text("drawing") == ""
 
         query(1)
         driver.find_element(By.ID, "answer-left").click()
@@ -598,18 +623,18 @@ def test_label_app_notices_a_round_answered_elsewhere_in_a_headless_browser(tmp_
         text = open_page(driver, address)
         answer_queries(driver, [Keys.ARROW_LEFT], first=1)
         assert text() == "round 0: query 2 of 3"
-        assert request(address, "POST", "/api/labels/0", b"[1, 1, 1]")[0] == 200  # another tab, or a script
+        assert request(address, "POST", "/api/labels/0", bound(run, 0, [1, 1, 1]))[0] == 200  # another tab
         # told within a poll, before answering more of it: the next answer is round 1's
         WebDriverWait(driver, 30).until(lambda d: text("message") == (
             "round 0 was answered elsewhere (another tab, another app or a script): your 1 answer to it was not used"))
         WebDriverWait(driver, 30).until(lambda d: text() == "round 1: query 1 of 3")
         assert stored(driver) == {}
         answer_queries(driver, [Keys.ARROW_RIGHT], first=1)
-        assert json.loads((run / "labels" / "0.json").read_text()) == [1, 1, 1]
+        assert page_answers(run, 0) == [1, 1, 1]
         assert [json.loads(value)["answers"] for value in stored(driver).values()] == [[1]]
         # the page closed mid-round, and the round answered meanwhile: told when the page opens again
         driver.get("about:blank")
-        assert request(address, "POST", "/api/labels/1", b"[0, 0, 0]")[0] == 200
+        assert request(address, "POST", "/api/labels/1", bound(run, 1, [0, 0, 0]))[0] == 200
         text = open_page(driver, address)
         WebDriverWait(driver, 60).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
         assert text("message") == "your 1 answer to round 1, kept in this tab, was not used: it was answered elsewhere"
@@ -736,6 +761,40 @@ def test_label_app_binds_the_answers_to_the_queries_shown(tmp_path):
         assert json.loads((run / "labels" / aside).read_text()) == {"queries": shown, "answers": [1, 1]}
 
 
+def test_label_app_takes_answers_for_the_queries_the_run_waits_for(tmp_path):
+    """While the run waits for a round, its teacher.json names the digest of the queries it wrote: those are the
+    round's, whatever file lies in their place for a moment (the run writes its own again at its next look). The
+    state says so, answers to them are saved, answers to the file in their place are refused."""
+    import label_app
+
+    run = make_run(tmp_path, (2,))
+    digest = label_app.read_queries(str(run), 0).digest
+    write_teacher(run, round=0, queries=2, digest=digest)
+    with serve(run) as address:
+        np.savez(run / "queries" / "0.npz", env_id="cartpole-swingup", obs=np.zeros((3, 2, 3, 5), np.float32),
+                 actions=np.zeros((3, 2, 3, 1), np.float32), physics=np.ones((3, 2, 3, 4)),
+                 true_rewards=np.zeros((3, 2, 3)))
+        other = label_app.read_queries(str(run), 0).digest
+        state = get_state(address)
+        assert (state["round"], state["n"], state["queries_digest"]) == (0, 2, digest)
+        assert state["foreign"] == (f"queries/0.npz is not the file the run wrote for round 0 (it holds the queries of "
+                                    f"digest {other}; the run's are {digest}): the run writes its own again at its "
+                                    "next look")
+        status, reply = request(address, "GET", f"/clip/0/0/0.gif?queries={digest}")
+        assert status == 404 and reply.decode() == state["foreign"]
+        status, reply = request(address, "POST", "/api/labels/0",
+                                json.dumps({"queries": other, "answers": [0, 1]}).encode())
+        assert status == 409 and f"it answers the queries of digest {other}, not this round's ({digest})" in reply.decode()
+        body = json.dumps({"queries": digest, "answers": [0, 1]}).encode()
+        assert request(address, "POST", "/api/labels/0", body)[0] == 200
+        assert json.loads((run / "labels" / "0.json").read_text()) == {"queries": digest, "answers": [0, 1]}
+        assert get_state(address)["round"] is None
+        write_teacher(run, round=0, queries=2, digest="0123456789ABCDEF")
+        assert get_state(address)["teacher_problem"] == ('teacher.json cannot be read (digest is "0123456789ABCDEF", '
+                                                         "not a digest of 16 hex digits): the page shows what the "
+                                                         "run's files say")
+
+
 @needs_chromium
 def test_label_app_no_modifier_combination_answers_on_a_focused_button_in_a_headless_browser(tmp_path):
     """Space and Enter press a focused button only unmodified: Ctrl, Alt, Meta or Shift with either answers nothing
@@ -770,8 +829,8 @@ def test_label_app_no_modifier_combination_answers_on_a_focused_button_in_a_head
 @needs_chromium
 def test_label_app_page_recovers_by_itself_when_the_app_restarts_mid_fetch_in_a_headless_browser(tmp_path):
     """The app stops while the page fetches a query's clips and starts again on its port: the page tries the clips
-    again, after a growing wait that its notice names ("did not load (try 3): the app does not answer, ...; trying
-    again in 2 s"), and takes answers without a reload."""
+    again, after a growing wait that its notice names ("did not load (try 3): the app does not answer (Failed to
+    fetch); trying again in 2 s"), and takes answers without a reload."""
     from selenium.webdriver.common.keys import Keys
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -793,12 +852,13 @@ def test_label_app_page_recovers_by_itself_when_the_app_restarts_mid_fetch_in_a_
             WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 3")
             first.terminate()
             first.communicate(timeout=30)
-            WebDriverWait(driver, 30).until(lambda d: "did not load" in text("message"))
+            WebDriverWait(driver, 30).until(lambda d: "did not load" in text("drawing"))
+            assert "the app does not answer" in text("drawing")
             time.sleep(3)  # the page keeps trying while the app is away
             assert not answers_enabled(driver)
             second = app("0")
             WebDriverWait(driver, 30).until(answers_enabled)  # without a reload
-            assert "the clips of query 1 loaded on try" in text("message")
+            assert "the clips of query 1 loaded on try" in text("drawing")
             answer_round(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT, "="])
             WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
         assert page_answers(run, 0) == [0, 1, 0.5]

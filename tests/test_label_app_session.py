@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import tyro
 
-from test_label_app import (answer_queries, answer_round, get_state, make_run, open_page, page_answers, request, serve,
-                            write_teacher)
+from test_label_app import (answer_queries, answer_round, bound, get_state, make_run, open_page, page_answers, request,
+                            serve, write_teacher)
 from test_labelling import answers_enabled, chrome, needs_chromium
 from test_scripts import ROOT
 
@@ -91,12 +91,12 @@ def test_label_app_labels_file_that_is_a_folder(tmp_path):
     with serve(run) as address:
         state = get_state(address)
         assert state["round"] == 0 and state["blocked"] == sentence and state["malformed"] is None
-        assert request(address, "POST", "/api/labels/0", b"[0, 1]") == (500, sentence.encode())
+        assert request(address, "POST", "/api/labels/0", bound(run, 0, [0, 1])) == (500, sentence.encode())
         assert os.listdir(run / "labels") == ["0.json"] and os.listdir(run / "labels" / "0.json") == []
         os.rename(run / "labels" / "0.json", run / "labels" / "0.json.moved")
         assert get_state(address)["blocked"] is None
-        assert request(address, "POST", "/api/labels/0", b"[0, 1]")[0] == 200
-        assert json.loads((run / "labels" / "0.json").read_text()) == [0, 1]  # a script's: as it came, unbound
+        assert request(address, "POST", "/api/labels/0", bound(run, 0, [0, 1]))[0] == 200
+        assert page_answers(run, 0) == [0, 1]
 
 
 def strict_json(body: bytes):
@@ -134,7 +134,7 @@ def test_label_app_round_numbers_are_canonical(tmp_path):
             assert status == 404, (path, status, reply)
         assert not (run / "labels").exists()
         os.link(run / "queries" / "0.npz", run / "queries" / "00.npz")
-        assert request(address, "POST", "/api/labels/0", b"[0, 0, 0]")[0] == 200
+        assert request(address, "POST", "/api/labels/0", bound(run, 0, [0, 0, 0]))[0] == 200
         assert get_state(address)["round"] is None
     assert os.listdir(run / "labels") == ["0.json"]
 
@@ -146,7 +146,7 @@ def test_label_app_labels_files_are_group_readable_as_the_run_files(tmp_path):
     run = make_run(tmp_path, (3,))
     umask = os.umask(0o022)
     try:
-        label_app.write_labels(str(run), 0, b"[0, 1, 0.5]")
+        label_app.write_labels(str(run), 0, bound(run, 0, [0, 1, 0.5]))
         write_npz(str(run / "preferences" / "0.npz"), labels=np.zeros(3))
     finally:
         os.umask(umask)

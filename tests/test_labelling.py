@@ -247,7 +247,8 @@ def test_labelling_page_in_a_headless_browser(tmp_path):
         np.testing.assert_array_equal(data["labels"], np.array(expected, np.float32))
         assert data["label_sha256"].tolist() == [hashlib.sha256(c).hexdigest() for c in files]  # per round
         WebDriverWait(driver, 30).until(lambda d: progress().startswith("the run has finished: 9 labels in 2 rounds"))
-        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=b"[1, 1, 1, 1, 1]", method="POST",
+        again = json.dumps({"queries": json.loads(files[1])["queries"], "answers": [1] * 5}).encode()
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/labels/1", data=again, method="POST",
                                          headers={"Content-Type": "application/json"})
         with pytest.raises(urllib.error.HTTPError) as refused:
             urllib.request.urlopen(request, timeout=30)

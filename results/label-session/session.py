@@ -274,12 +274,12 @@ def main():
                 stopped = time.time()
                 log(f"round {round_index}: the app stopped (SIGTERM) while the page fetched the round's first clips")
                 tries = set()
-                wait_until(lambda: tries.add(text("message")) or "did not load (try" in text("message"), 30)
+                wait_until(lambda: tries.add(text("drawing")) or "did not load (try" in text("drawing"), 30)
                 time.sleep(2)  # the app is away a while; the page keeps trying
                 app = start_app()
                 log(f"round {round_index}: the app started again on port {port} after {time.time() - stopped:.1f} s")
-                recovered = wait_until(lambda: tries.add(text("message")) or taking(round_index, 0), 120)
-                tries.add(text("message"))
+                recovered = wait_until(lambda: tries.add(text("drawing")) or taking(round_index, 0), 120)
+                tries.add(text("drawing"))
                 tries.discard("")
                 summary["restart"] = {
                     "round": round_index, "recovered_without_reload": recovered,
