@@ -24,7 +24,7 @@ GYM_TINY = [
 PBRL_TINY = [
     "--unsup-steps", "100", "--feedback-freq", "200", "--segment-size", "10", "--max-feedback", "5",
     "--queries-per-round", "5", "--reward-hidden-dim", "16", "--reward-layers", "2", "--reward-epochs", "20",
-    "--reset-updates", "10", "--diagnostic-pairs", "8", "--diagnostic-transitions", "100",
+    "--reset-updates", "10",
 ]
 EXTRA = {  # the sparse scripts update their topologies within the run; SURF keeps pseudo-labels
     "r2n_pebble.py": ["--reward-topology-period", "5", "--agent-topology-period", "50"],

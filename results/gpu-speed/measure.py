@@ -255,17 +255,17 @@ def instrument(namespace: dict, timers: Timers):
 
     import ene
 
-    from r2n_harness import cuda_graph, resume, run
+    from r2n_harness import cuda_graph, resume
 
     g = namespace
-    update = run.Progress.update
+    update = g["Progress"].update
 
     timed_update = timers.item("progress", update)
 
-    def step_start(self, step, *args, **kwargs):  # the loop calls it first in every step (`Run.step_starts`)
+    def step_start(self, step, *args, **kwargs):  # the loop calls it early in every step (the progress line)
         timers.new_step(step)
         return timed_update(self, step, *args, **kwargs)
-    run.Progress.update = step_start
+    g["Progress"].update = step_start
     # The loop body's own calls, so that "other (loop body)" is only its Python lines.
     for name in ("check_finite", "log_losses", "feedback_due"):
         if name in g:
@@ -316,15 +316,15 @@ def trace_lines(namespace: dict, timers: Timers, body, functions=("sac_update", 
     import inspect
     import linecache
 
-    from r2n_harness import resume, run
+    from r2n_harness import resume
 
     g = namespace
-    update = run.Progress.update
+    update = g["Progress"].update
 
     def step_start(self, step, *args, **kwargs):
         timers.new_step(step)
         return update(self, step, *args, **kwargs)
-    run.Progress.update = step_start
+    g["Progress"].update = step_start
     for name in ("evaluate", "feedback_round"):
         if name in g:
             g[name] = timers.excluding(name, g[name])
@@ -364,7 +364,7 @@ def run_items(script: str, argv: list, first: int, last: int, out: str, lines: b
     module.__file__ = os.path.abspath(script)
     sys.modules[module.__name__] = module
     namespace = module.__dict__
-    # the step as the studies run it: with the harness's hooks (its progress line marks each step's start)
+    # the step as the studies run it: with the harness's hooks (the progress line marks each step's start)
     argv = argv if "--resumable" in argv else [*argv, "--resumable"]
     sys.argv = [script, *argv]
     sys.path.insert(0, os.path.dirname(os.path.abspath(script)))
