@@ -22,6 +22,8 @@ import torch
 from test_resume import points
 from test_scripts import ROOT
 
+import r2n_harness.diagnostics as diagnostics  # noqa: E402 (test_scripts puts the repository on the path)
+
 REFERENCE_COMMIT = "88b95d9"  # the code of the cpu-study, before the layout change of issue 18
 
 # Through every phase in 1500 steps: random (0-199), pre-training (200-499), feedback rounds at 500 and 1000 (critic
@@ -53,7 +55,9 @@ NOT_TRAINING = ("state_minutes", "checkpoint_freq")
 # Tags added since that only read the weights (`features/`); every other tag is compared bitwise.
 ADDED_TAGS = ("features/",)
 ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False,  # added since, off there
-               "hidden_layers": 2, "weight_decay": 0.0}  # added since, as they were there
+               "cuda_graph_whole": False, "hidden_layers": 2, "weight_decay": 0.0}  # added since, as they were there
+# Flags that became the run harness's constants, at the same values (`r2n_harness.diagnostics`): no number changes.
+HARNESS_CONSTANTS = {"diagnostic_transitions": diagnostics.TRANSITIONS, "diagnostic_pairs": diagnostics.PAIRS}
 # The harness's hooks were always on there (state.pt, the query log, the diagnostics); here their flags turn them on.
 HARNESS = {"resumable": True, "query_log": True, "diagnostics": True}
 ADDED_FLAGS |= HARNESS
@@ -135,6 +139,8 @@ def assert_same_run(script, reference, current):
                 for cwd in (reference, current))
     old_args, new_args = ({k: v for k, v in c.pop("args").items() if k not in NOT_TRAINING} for c in (old, new))
     old_args.update({k: v for k, v in ADDED_FLAGS.items() if k in new_args})  # flags added since, at their defaults
+    for key, value in HARNESS_CONSTANTS.items():  # the reference's flag, at the harness's constant
+        assert old_args.pop(key, value) == value, f"{script}: {REFERENCE_COMMIT}'s {key} is not the harness's {value}"
     absent = object()
     changed = sorted(k for k in old_args.keys() | new_args.keys() if old_args.get(k, absent) != new_args.get(k, absent))
     assert not changed, f"{script}: the checkpoint's args differ from {REFERENCE_COMMIT}'s in {changed}"
