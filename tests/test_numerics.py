@@ -52,8 +52,9 @@ CASES = [(script, "redrawn") for script in ARGS] + [(script, "stored, the defaul
 # The checkpoint's `args` equal the reference's but for flags added or re-defaulted since that only say when state.pt
 # is written (issue 19: --state-minutes added, --checkpoint-freq from 10000 to None); none touches training.
 NOT_TRAINING = ("state_minutes", "checkpoint_freq")
-# Tags added since that only read the weights (`features/`); every other tag is compared bitwise.
-ADDED_TAGS = ("features/",)
+# Tags added since that only read the weights (`features/`) or a batch (RUNE's bonus); every other tag is compared
+# bitwise.
+ADDED_TAGS = ("features/", "losses/rune_bonus")
 ADDED_FLAGS = {"compile": False, "tf32": False, "cuda_graph": False, "parallel_eval": False,  # added since, off there
                "cuda_graph_whole": False, "hidden_layers": 2, "weight_decay": 0.0}  # added since, as they were there
 # Flags that became the run harness's constants, at the same values (`r2n_harness.diagnostics`): no number changes.
