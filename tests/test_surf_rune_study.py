@@ -1,12 +1,17 @@
 """Issue 91's study (results/surf-rune): the preset runs what PROTOCOL.md fixes, the power it quotes is what
-`power.py` prints, and the first-seeds stop rule fires where the protocol says."""
+`power.py` prints, the first-seeds stop rule fires where the protocol says, the sessions' schedule, and the analysis:
+the tests as the protocol fixes them, on synthetic runs whose primary metrics are known, against scipy; the refusal
+before every run is in; the diagnostics."""
+import glob
 import importlib.util
 import math
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+from scipy import stats
 from torch.utils.tensorboard import SummaryWriter
 
 import benchmark
@@ -97,3 +102,202 @@ def test_stop_rule_fires_on_a_first_seed_at_the_pretraining_level(tmp_path):
     assert result.returncode == 1 and result.stdout.count("stop rule:") == 1
     assert f"{power.R2N_RUNE}__cheetah-run__noise0.9__budget1000__seed1 ended at 49.0" in result.stdout
     assert not math.isnan(power.primary(os.path.join(tmp_path, os.listdir(tmp_path)[0])))
+
+
+# The analysis (hypotheses.py, diagnostics.py, analyze.sh) on synthetic runs whose primary metrics are known, and the
+# sessions' schedule (schedule.py). Each runs in a subprocess: other studies have modules of the same names.
+ARM_SEEDS = {"pebble_stored_noise": 8, "r2n_pebble_stored_noise": 10, "surf_stored_noise": 8,
+             "r2n_surf_stored_noise": 10, "r2n_surf_agent_only_stored_noise": 10, "rune_stored_noise": 10,
+             "r2n_rune_stored_noise": 10}
+MEANS = {"pebble_stored_noise": 180.0, "r2n_pebble_stored_noise": 258.0, "surf_stored_noise": 200.0,
+         "r2n_surf_stored_noise": 300.0, "r2n_surf_agent_only_stored_noise": 280.0, "rune_stored_noise": 150.0,
+         "r2n_rune_stored_noise": 190.0}
+SPARSE_REWARD = ("r2n_pebble_stored_noise", "r2n_surf_stored_noise", "r2n_rune_stored_noise")
+
+
+def synthetic_run(folder, arm, seed, primary, relevant=0.5, threads=1):
+    """A finished run whose last 3 evaluations average `primary`, with the diagnostics' tags (chance 0.13)."""
+    path = os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}")
+    writer = SummaryWriter(path)
+    for step, value in ((230_000, primary - 1.0), (240_000, primary), (250_000, primary + 1.0)):
+        writer.add_scalar("eval/episodic_return", value, step)
+        for net in ("actor", "qf1", "qf2", "reward0", "reward1", "reward2"):
+            writer.add_scalar(f"features/{net}/chance", 0.13, step)
+            writer.add_scalar(f"features/{net}/relevant_weight_frac", relevant, step)
+            writer.add_scalar(f"sparse/{net}/relevant_active_frac", relevant, step)
+            if arm in SPARSE_REWARD and net.startswith("reward"):
+                writer.add_scalar(f"sparse/{net}/topology_updates", 197.0 if "surf" in arm else 5.0, step)
+        if "surf" in arm:
+            writer.add_scalar("pbrl/pseudo_label_rate", 0.7, step)
+        if "rune" in arm:
+            writer.add_scalar("pbrl/beta", 0.04, step)
+            writer.add_scalar("losses/rune_bonus", 0.02, step)
+    writer.close()
+    open(os.path.join(path, "done"), "w").write(f"exit code 0\ncommand python x.py --seed {seed} --threads {threads}"
+                                                f"\ncpu AMD EPYC, torch CPU capability AVX512\n")
+
+
+def synthetic_study(tmp_path, skip=None, means=MEANS):
+    """The reference arms' first 8 seeds in `reference/`, R2N-PEBBLE's 9-10 in `which/`, the study's in `runs/`."""
+    rng, values = np.random.default_rng(1), {}
+    for arm, n in ARM_SEEDS.items():
+        values[arm] = np.round(means[arm] + 40 * rng.standard_normal(n), 3)
+        for seed, value in enumerate(values[arm], 1):
+            folder = ("reference" if seed <= 8 else "which") if arm in ("pebble_stored_noise",
+                                                                        "r2n_pebble_stored_noise") else "runs"
+            if (arm, seed) != skip:
+                synthetic_run(tmp_path / folder, arm, seed, value, threads=2 if "surf" in arm else 1)
+    return values
+
+
+def study_script(tmp_path, script, *extra):
+    return subprocess.run([sys.executable, os.path.join(STUDY, script), "--reference", str(tmp_path / "reference"),
+                           "--which-sparsity", str(tmp_path / "which"), "--runs", str(tmp_path / "runs"), *extra],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_hypotheses_refuse_until_every_run_is_in(tmp_path):
+    synthetic_study(tmp_path, skip=("r2n_surf_agent_only_stored_noise", 4))
+    result = study_script(tmp_path, "hypotheses.py", "--out", str(tmp_path / "h.md"))
+    assert result.returncode == 1 and "r2n_surf_agent_only_stored_noise (9 of 10)" in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not os.path.exists(tmp_path / "h.md")
+    analyze_sh = subprocess.run(["bash", os.path.join(STUDY, "analyze.sh")], cwd=ROOT, capture_output=True, text=True)
+    landed = len(glob.glob(os.path.join(STUDY, "runs", "*", "done")))
+    if landed < 48:
+        assert analyze_sh.returncode == 1 and f"{landed} of the 48 runs are in" in analyze_sh.stderr
+
+
+def welch_upper(a, b):
+    va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    df = (va + vb) ** 2 / (va ** 2 / (len(a) - 1) + vb ** 2 / (len(b) - 1))
+    return a.mean() - b.mean(), a.mean() - b.mean() + stats.t.ppf(0.95, df) * np.sqrt(va + vb)
+
+
+def test_hypotheses_are_the_protocols_tests(tmp_path):
+    values = synthetic_study(tmp_path)
+    result = study_script(tmp_path, "hypotheses.py", "--out", str(tmp_path / "h.md"))
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "h.md").read_text()
+    lines = text.splitlines()
+    # H1-H2: one-tailed Welch, each R2N arm above its method, Holm over the two
+    p = {h: stats.ttest_ind(values[high], values[low], equal_var=False, alternative="greater").pvalue
+         for h, high, low in (("H1", "r2n_surf_stored_noise", "surf_stored_noise"),
+                              ("H2", "r2n_rune_stored_noise", "rune_stored_noise"))}
+    order = sorted(p, key=p.get)
+    holm = dict(zip(order, np.maximum.accumulate([min(1, (2 - k) * p[h]) for k, h in enumerate(order)])))
+    for h in p:
+        row = next(line for line in lines if line.startswith(f"| {h} |"))
+        assert f"| {p[h]:.4f} | {holm[h]:.4f} |" in row, (row, p[h], holm[h])
+        assert row.endswith("| yes |") == (holm[h] < 0.05)
+    assert "| +145.2 |" in next(line for line in lines if line.startswith("| H1 |"))  # the paper's difference
+    # E1: R2N-SURF minus its actor/critic-only arm, the Welch interval and the reading fixed before the runs
+    delta, upper = welch_upper(values["r2n_surf_stored_noise"], values["r2n_surf_agent_only_stored_noise"])
+    assert f"= {delta:+.1f}, one-sided 95% bounds" in text and f"upper {upper:+.1f}" in text
+    # the two schedules side by side: 5 topology updates a run on PEBBLE's rounds, 197 on SURF's
+    assert "| which-sparsity (PEBBLE's reward rounds) | -1.0 | +38.8 | 5.0 ± 0.0 (10 runs) |" in text
+    assert f"| this study (SURF's reward rounds) | {delta:+.1f} | {upper:+.1f} | 197.0 ± 0.0 (10 runs) |" in text
+    # the arms' table: ours (mean ± SE, Student's 95% CI) beside the paper's, with CPUs and threads from `done`
+    for arm, v in values.items():
+        se = v.std(ddof=1) / np.sqrt(len(v))
+        half = stats.t.ppf(0.975, len(v) - 1) * se
+        row = next(line for line in lines if line.startswith(f"| `{arm}` |"))
+        assert f"| {len(v)} | {v.mean():.1f} ± {se:.1f} | [{v.mean() - half:.1f}, {v.mean() + half:.1f}] |" in row
+        if arm not in ("pebble_stored_noise", "r2n_pebble_stored_noise"):
+            threads = "2 threads" if "surf" in arm else "1 thread"
+            assert row.endswith(f"| AMD EPYC, torch CPU capability AVX512, {threads} ×{len(v)} |"), row
+    assert "| 405.68 ± 18.38 |" in next(line for line in lines if line.startswith("| `r2n_surf_stored_noise` |"))
+    # E3: ratios beside the paper's; E4: R2N-PEBBLE's gain with the stored-noise study's own 8 seeds a side
+    surf_ratio = values["surf_stored_noise"].mean() / values["pebble_stored_noise"].mean()
+    assert f"| ×{surf_ratio:.3f} | ×1.096 |" in text
+    gain = values["r2n_pebble_stored_noise"][:8].mean() - values["pebble_stored_noise"].mean()
+    assert f"`r2n_pebble_stored_noise` - `pebble_stored_noise` | {gain:+.1f} | +167.0 |" in text
+
+
+@pytest.mark.parametrize("delta_mean, expected", [
+    (120.0, "R2N's sparse reward adds to the return where its topology moves"),
+    (-60.0, "it adds nothing at this scale"),
+    (-20.0, "this study cannot tell: R2N's sparse reward adds at most"),
+])
+def test_e1_reading_is_the_one_fixed_before_the_runs(tmp_path, delta_mean, expected):
+    means = dict(MEANS, r2n_surf_agent_only_stored_noise=MEANS["r2n_surf_stored_noise"] - delta_mean)
+    values = synthetic_study(tmp_path, means=means)
+    assert study_script(tmp_path, "hypotheses.py", "--out", str(tmp_path / "h.md")).returncode == 0
+    text = (tmp_path / "h.md").read_text()
+    delta, upper = welch_upper(values["r2n_surf_stored_noise"], values["r2n_surf_agent_only_stored_noise"])
+    assert f"**Reading, as fixed before the runs: {expected}" in text
+    if expected.startswith("this study"):
+        assert f"adds at most {upper:.1f}.**" in text
+
+
+def test_e1_constants_are_the_protocols_and_which_sparsitys():
+    power = load_power()
+    pebble = power.arm_values(power.REFERENCE, "pebble_stored_noise").mean()
+    means = power.planned_means(pebble)
+    source = open(os.path.join(STUDY, "hypotheses.py")).read()
+    assert f"E1_EFFECT = {means[power.R2N_SURF] - means[power.AGENT]:.1f}\n" in source
+    assert "+46.2" in open(os.path.join(STUDY, "PROTOCOL.md")).read()
+    which = open(os.path.join(ROOT, "results", "which-sparsity", "analysis", "hypotheses.md")).read()
+    assert "WHICH_SPARSITY_E1 = (-1.0, 38.8)\n" in source
+    assert "Δ = R2N-PEBBLE - actor/critic-only = -1.0" in which and "upper +38.8" in which
+
+
+def test_diagnostics_name_a_sparse_layer_at_chance(tmp_path):
+    synthetic_study(tmp_path)
+    folder = tmp_path / "runs"
+    for name in os.listdir(folder):  # the actor/critic-only arm's actor never leaves chance
+        if name.startswith("r2n_surf_agent_only_stored_noise__"):
+            os.remove(os.path.join(folder, name, "done"))
+    for seed in range(1, 11):
+        synthetic_run(folder, "r2n_surf_agent_only_stored_noise", f"{seed}x", 250.0, relevant=0.1305)
+    result = study_script(tmp_path, "diagnostics.py", "--out", str(tmp_path / "d.md"))
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "d.md").read_text()
+    assert "`r2n_surf_agent_only_stored_noise`: `sparse/actor/relevant_active_frac` is at chance" in text
+    assert "r2n_surf_stored_noise`: `sparse" not in text  # its layers moved (0.5 > 0.13)
+    assert "| `r2n_surf_stored_noise` | 10 | 197.0 ± 0.0 (10 runs) |" in text
+    assert "| `surf_stored_noise` | 8 | none (dense reward) |" in text
+    surf = next(line for line in text.splitlines() if line.startswith("| `surf_stored_noise` |") and "mean" in line)
+    assert "0.700 ± 0.000; mean 0.700 ± 0.000" in surf
+
+
+def schedule(runs):
+    return subprocess.run([sys.executable, os.path.join(STUDY, "schedule.py"), str(runs)], capture_output=True,
+                          text=True, check=True, timeout=120).stdout.split()
+
+
+def test_schedule_runs_one_family_a_session_in_the_protocols_order(tmp_path):
+    """A SURF-family run alone at two threads while its family is no further on than RUNE's; else RUNE's runs two at a
+    time at one thread; nothing once every run is in."""
+    power = load_power()
+    assert schedule(tmp_path) == ["--preset", "surf-rune", "--methods", power.SURF, "--seeds", "1", "--threads", "2",
+                                  "--workers", "1"]
+    synthetic_run(tmp_path, power.SURF, 1, 100.0)  # SURF's family 1/28 in, RUNE's 0/20
+    assert schedule(tmp_path) == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds",
+                                  *map(str, range(1, 11)), "--threads", "1", "--workers", "2"]
+    for seed in (1, 2):
+        for arm in (power.RUNE, power.R2N_RUNE):
+            synthetic_run(tmp_path, arm, seed, 100.0)  # RUNE's 4/20 in: SURF's next, R2N-SURF seed 1
+    assert schedule(tmp_path)[3:6] == [power.R2N_SURF, "--seeds", "1"]
+    for run in benchmark.expand(benchmark.Args(preset="surf-rune")):
+        if run.method != power.AGENT:
+            synthetic_run(tmp_path, run.method, run.seed, 100.0)
+    assert schedule(tmp_path)[3:6] == [power.AGENT, "--seeds", "1"]  # the actor/critic-only arm comes last
+    for seed in range(1, 11):
+        synthetic_run(tmp_path, power.AGENT, seed, 100.0)
+    assert schedule(tmp_path) == []
+
+
+def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):
+    """Once all 48 runs are in, `analysis/` is committed, and its tests and diagnostics are what the scripts make of
+    the committed runs now. Before, it holds no test."""
+    landed = len(glob.glob(os.path.join(STUDY, "runs", "*", "done")))
+    committed = os.path.join(STUDY, "analysis", "hypotheses.md")
+    assert landed <= 48 and os.path.exists(committed) == (landed == 48), \
+        f"{landed} of 48 runs are in: run `bash results/surf-rune/analyze.sh` once all are, and commit analysis/"
+    if landed < 48:
+        return
+    for script, name in (("hypotheses.py", "hypotheses.md"), ("diagnostics.py", "diagnostics.md")):
+        subprocess.run([sys.executable, os.path.join(STUDY, script), "--out", str(tmp_path / name)], check=True,
+                       capture_output=True, timeout=300)
+        with open(os.path.join(STUDY, "analysis", name)) as f:
+            assert (tmp_path / name).read_text() == f.read(), f"run `bash results/surf-rune/analyze.sh`: {name}"

@@ -3,16 +3,18 @@
 # run into this checkout as it finishes. Run from the repository root, with the project's venv active:
 #
 #   bash results/surf-rune/continue.sh [WORKTREE]     # default WORKTREE: ../surf-rune-$COMMIT
-#   bash results/surf-rune/continue.sh --dry-run      # how many runs are left, nothing started
+#   bash results/surf-rune/continue.sh --dry-run      # this session's runs, nothing started
 #
 # 1. A git worktree at the protocol's commit (made once), holding a copy of the committed runs, so that the launcher
-#    skips them: `benchmark.py --preset surf-rune --workers 2` there, one torch thread a run, at the lowest priority
-#    (nice 19 on the launcher's and each run's autogroup, so that the machine's other work comes first).
+#    skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (one SURF-family run at
+#    two threads, or RUNE's runs two at a time at one thread: a machine keeps nothing between sessions, so a run must
+#    finish in its own), at the lowest priority (nice 19 on the launcher's and each run's autogroup, so that the
+#    machine's other work comes first). Start it at a session's start: a SURF-family run takes about 2.1 hours.
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
 #    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
-# launcher stops when every run is in, the watcher when the launcher has stopped and nothing is left to commit.
+# launcher stops when this session's runs are in, the watcher when the launcher has stopped and nothing is left to commit.
 # Nothing starts while `STOPPED` is here: the protocol wants the bug search written down first.
 set -euo pipefail
 STUDY=results/surf-rune
@@ -73,12 +75,18 @@ for run in "$STUDY"/runs/*/; do  # the committed runs, so that the launcher skip
     [ -d "$run" ] || continue
     [ -e "$work/$STUDY/runs/$(basename "$run")/done" ] || cp -r "$run" "$work/$STUDY/runs/"
 done
-export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
+plan=$(python "$STUDY/schedule.py")
+read -ra session <<< "$plan"
+[ "${#session[@]}" -gt 0 ] || { echo "every run of the protocol is in: bash $STUDY/analyze.sh" >&2; exit 0; }
+echo "this session: benchmark.py ${session[*]}"
 if [ "$mode" = --dry-run ]; then
-    (cd "$work" && python benchmark.py --preset surf-rune --workers 2 --dry-run | tail -n 1)
+    (cd "$work" && python benchmark.py "${session[@]}" --dry-run | tail -n 1)
     exit 0
 fi
-(cd "$work" && setsid nohup nice -n 19 python benchmark.py --preset surf-rune --workers 2 \
+if [ -f "$work/launcher.pid" ] && kill -0 "$(cat "$work/launcher.pid")" 2> /dev/null; then
+    echo "a launcher is running already: $work/launcher.log" >&2; exit 1
+fi
+(cd "$work" && setsid nohup nice -n 19 python benchmark.py "${session[@]}" \
     > "$work/launcher.log" 2>&1 < /dev/null & echo $! > "$work/launcher.pid")
 lowest_priority "$(cat "$work/launcher.pid")"
 setsid nohup bash "$main/$STUDY/continue.sh" --watch "$work" >> "$work/watcher.log" 2>&1 < /dev/null &
