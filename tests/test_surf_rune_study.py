@@ -119,6 +119,9 @@ def synthetic_run(folder, arm, seed, primary, relevant=0.5, threads=1):
     """A finished run whose last 3 evaluations average `primary`, with the diagnostics' tags (chance 0.13)."""
     path = os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}")
     writer = SummaryWriter(path)
+    hparams = dict(exp_name=arm, seed=seed, env_id="cheetah-run", noise=0.9, max_feedback=1000,
+                   total_timesteps=250_000, threads=threads)  # the table analyze.py reads a run's settings from
+    writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in hparams.items()))
     for step, value in ((230_000, primary - 1.0), (240_000, primary), (250_000, primary + 1.0)):
         writer.add_scalar("eval/episodic_return", value, step)
         for net in ("actor", "qf1", "qf2", "reward0", "reward1", "reward2"):
@@ -301,3 +304,31 @@ def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):
                        capture_output=True, timeout=300)
         with open(os.path.join(STUDY, "analysis", name)) as f:
             assert (tmp_path / name).read_text() == f.read(), f"run `bash results/surf-rune/analyze.sh`: {name}"
+
+
+def test_analyze_sh_writes_the_whole_analysis_once_every_run_is_in(tmp_path):
+    """analyze.sh end to end on 48 synthetic runs, in a copy of the repository's layout: analyze.py's tables and curves,
+    the tests, the power achieved and the diagnostics, each where the protocol says."""
+    root = tmp_path / "root"
+    study = root / "results" / "surf-rune"
+    os.makedirs(study)
+    for name in ("analyze.sh", "power.py", "hypotheses.py", "diagnostics.py"):
+        os.symlink(os.path.join(STUDY, name), study / name)
+    os.symlink(os.path.join(ROOT, "analyze.py"), root / "analyze.py")
+    synthetic_study(tmp_path)
+    for name, folder in (("stored-noise", "reference"), ("which-sparsity", "which")):
+        os.makedirs(root / "results" / name)
+        os.symlink(tmp_path / folder, root / "results" / name / "runs")
+    os.symlink(tmp_path / "runs", study / "runs")
+    result = subprocess.run(["bash", str(study / "analyze.sh")], cwd=root, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    analysis = study / "analysis"
+    for name in ("primary.md", "hypotheses.md", "power-achieved.txt", "diagnostics.md"):
+        assert (analysis / name).stat().st_size > 0, name
+    primary = (analysis / "primary.md").read_text()
+    # R2N-SURF and the actor/critic-only arm are tested against SURF, R2N-RUNE against RUNE; nothing else is
+    rows = [line.split("|") for line in primary.splitlines() if line.startswith("| ") and "_stored_noise |" in line]
+    tested = sorted(row[3].strip() for row in rows if row[5].strip())
+    assert tested == ["r2n_rune_stored_noise", "r2n_surf_agent_only_stored_noise", "r2n_surf_stored_noise"], primary
+    assert len(rows) == 7 and "against the baseline (`surf_stored_noise`; r2n_rune_stored_noise=rune_stored_noise" in primary
+    assert "r2n_surf_stored_noise: n 10" in (analysis / "power-achieved.txt").read_text()

@@ -143,7 +143,8 @@ def report(values: dict, runs_folder: str, topology: dict) -> list:
         v, (sparse, paper, paper_se) = values[arm], PAPER[arm]
         se = float(np.std(v, ddof=1) / math.sqrt(len(v)))
         half = stats.t.ppf(0.975, len(v) - 1) * se
-        where = cpus(runs_folder, arm) if arm in SEEDS else "stored-noise / which-sparsity studies"
+        where = (cpus(runs_folder, arm) if arm in SEEDS else "stored-noise study" if arm == PEBBLE
+                 else "stored-noise study (seeds 1-8), which-sparsity (9-10)")
         lines.append(f"| `{arm}` | {sparse} | {len(v)} | {m[arm]:.1f} ± {se:.1f} | [{m[arm] - half:.1f}, "
                      f"{m[arm] + half:.1f}] | {np.std(v, ddof=1):.1f} | "
                      f"{f'{paper:.2f} ± {paper_se:.2f}' if paper else '-'} | {where} |")
