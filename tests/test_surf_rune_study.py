@@ -264,30 +264,66 @@ def test_diagnostics_name_a_sparse_layer_at_chance(tmp_path):
 
 
 def schedule(runs):
-    return subprocess.run([sys.executable, os.path.join(STUDY, "schedule.py"), str(runs)], capture_output=True,
-                          text=True, check=True, timeout=120).stdout.split()
+    result = subprocess.run([sys.executable, os.path.join(STUDY, "schedule.py"), str(runs)], capture_output=True,
+                            text=True, check=True, timeout=120)
+    return result.stdout.split(), result.stderr
 
 
-def test_schedule_runs_one_family_a_session_in_the_protocols_order(tmp_path):
-    """A SURF-family run alone at two threads while its family is no further on than RUNE's; else RUNE's runs two at a
-    time at one thread; nothing once every run is in."""
+def load_schedule():
+    """The study's schedule.py in this process, with this study's power.py as its `power` (other studies have one)."""
+    saved = sys.modules.get("power")
+    sys.modules["power"] = load_power()
+    try:
+        spec = importlib.util.spec_from_file_location("surf_rune_schedule", os.path.join(STUDY, "schedule.py"))
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        if saved is None:
+            del sys.modules["power"]
+        else:
+            sys.modules["power"] = saved
+    return module
+
+
+def test_schedule_runs_rune_two_pairs_a_session_while_surf_waits(tmp_path):
+    """The SURF family is blocked (a run is longer than a session): RUNE's next two pairs, two at a time at one
+    thread, and a line that says what waits; nothing once RUNE's runs are in."""
     power = load_power()
-    assert schedule(tmp_path) == ["--preset", "surf-rune", "--methods", power.SURF, "--seeds", "1", "--threads", "2",
-                                  "--workers", "1"]
+    args, said = schedule(tmp_path)
+    assert args == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds", "1", "2",
+                    "--threads", "1", "--workers", "2"]
+    assert "the SURF family's 28 runs wait: a SURF-family run takes about 3 hours" in said
+    synthetic_run(tmp_path, power.RUNE, 1, 100.0)  # half a pair in: the grid covers the next four unfinished
+    assert schedule(tmp_path)[0][6:-4] == ["1", "2", "3"]
+    for seed in range(1, 11):
+        for arm in (power.RUNE, power.R2N_RUNE):
+            synthetic_run(tmp_path, arm, seed, 100.0)
+    args, said = schedule(tmp_path)
+    assert args == [] and "28 runs wait" in said
+
+
+def test_schedule_alternates_the_families_in_the_protocols_order_when_none_is_blocked(tmp_path):
+    """Unblocked, a SURF-family run alone at two threads while its family is no further on than RUNE's; else RUNE's
+    runs; the actor/critic-only arm last; nothing once every run is in."""
+    power, schedule_module = load_power(), load_schedule()
+    schedule_module.BLOCKED = {}
+    plan = lambda: schedule_module.next_session(str(tmp_path))  # noqa: E731
+    assert plan() == ["--preset", "surf-rune", "--methods", power.SURF, "--seeds", "1", "--threads", "2",
+                      "--workers", "1"]
     synthetic_run(tmp_path, power.SURF, 1, 100.0)  # SURF's family 1/28 in, RUNE's 0/20
-    assert schedule(tmp_path) == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds",
-                                  *map(str, range(1, 11)), "--threads", "1", "--workers", "2"]
+    assert plan() == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds", "1", "2",
+                      "--threads", "1", "--workers", "2"]
     for seed in (1, 2):
         for arm in (power.RUNE, power.R2N_RUNE):
             synthetic_run(tmp_path, arm, seed, 100.0)  # RUNE's 4/20 in: SURF's next, R2N-SURF seed 1
-    assert schedule(tmp_path)[3:6] == [power.R2N_SURF, "--seeds", "1"]
+    assert plan()[3:6] == [power.R2N_SURF, "--seeds", "1"]
     for run in benchmark.expand(benchmark.Args(preset="surf-rune")):
         if run.method != power.AGENT:
             synthetic_run(tmp_path, run.method, run.seed, 100.0)
-    assert schedule(tmp_path)[3:6] == [power.AGENT, "--seeds", "1"]  # the actor/critic-only arm comes last
+    assert plan()[3:6] == [power.AGENT, "--seeds", "1"]  # the actor/critic-only arm comes last
     for seed in range(1, 11):
         synthetic_run(tmp_path, power.AGENT, seed, 100.0)
-    assert schedule(tmp_path) == []
+    assert plan() == []
 
 
 def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):

@@ -6,10 +6,11 @@
 #   bash results/surf-rune/continue.sh --dry-run      # this session's runs, nothing started
 #
 # 1. A git worktree at the protocol's commit (made once), holding a copy of the committed runs, so that the launcher
-#    skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (one SURF-family run at
-#    two threads, or RUNE's runs two at a time at one thread: a machine keeps nothing between sessions, so a run must
-#    finish in its own), at the lowest priority (nice 19 on the launcher's and each run's autogroup, so that the
-#    machine's other work comes first). Start it at a session's start: a SURF-family run takes about 2.1 hours.
+#    skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (RUNE's runs two at a
+#    time at one thread, two pairs; the SURF family is blocked: a machine keeps nothing between sessions, so a run
+#    must finish in its own, and a SURF-family run takes about 3 hours), at the lowest priority (nice 19 on the
+#    launcher's and each run's autogroup, so that the machine's other work comes first). Start it at a session's
+#    start.
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
 #    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
@@ -77,7 +78,7 @@ for run in "$STUDY"/runs/*/; do  # the committed runs, so that the launcher skip
 done
 plan=$(python "$STUDY/schedule.py")
 read -ra session <<< "$plan"
-[ "${#session[@]}" -gt 0 ] || { echo "every run of the protocol is in: bash $STUDY/analyze.sh" >&2; exit 0; }
+[ "${#session[@]}" -gt 0 ] || { echo "no run can start (schedule.py says why, if one waits); once all 48 are in: bash $STUDY/analyze.sh" >&2; exit 0; }
 echo "this session: benchmark.py ${session[*]}"
 if [ "$mode" = --dry-run ]; then
     (cd "$work" && python benchmark.py "${session[@]}" --dry-run | tail -n 1)
