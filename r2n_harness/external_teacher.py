@@ -72,9 +72,11 @@ class ExternalTeacher:
         one gets one line (and the page's notice), and the wait goes on. So does a valid one for other
         queries (its digest is not theirs): it is moved aside, never deleted, and the round is asked
         again. The queries file is known by its bytes: one that differs from what the run wrote, or
-        is gone, is said at once and written again. A bare list of answers names no queries: it is
-        read only at a look that finds the run's own queries file in place, else moved aside too. Both
-        files are read by their content at every poll, not by their time stamps. Returns the answered
+        is gone, is said at once and written again; a folder in its place is said once (and on the
+        page), and the queries are written when it is moved. A bare list of answers names no
+        queries: it is read only at a look that finds the run's own queries file in place, else moved
+        aside too. Both files are read by their content at every poll, not by their time stamps.
+        Returns the answered
         pairs' mask and labels (0 where skipped), both on the segments' device, the labels file's
         SHA-256 and the seconds waited. A stop signal raises `stopped`: the state written before the
         round resumes into it."""
@@ -82,7 +84,8 @@ class ExternalTeacher:
         queries_file = f"{self.folder}/queries/{round_index}.npz"
         written = npz_bytes(env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],
                             physics=physics, true_rewards=true_rewards.cpu().numpy())
-        write_bytes(queries_file, written)
+        if not os.path.isdir(queries_file):  # a folder there is said in the wait below
+            write_bytes(queries_file, written)
         digest = queries_digest(env_id, physics)
         path, n, started, seen, problem = (
             f"{self.folder}/labels/{round_index}.json", len(rows), time.monotonic(), None, None
@@ -100,6 +103,15 @@ class ExternalTeacher:
             # By its bytes, not its time stamp: another write may land between a write and a stat,
             # or within one tick of it.
             own = read_bytes(queries_file) == written
+            if not own and os.path.isdir(queries_file):  # cannot be replaced: said once, and on the page
+                notice = (f"queries: {queries_file}: a folder, not a file: move it; this run writes "
+                          f"round {round_index}'s queries there")
+                if notice != problem:
+                    print(notice, flush=True)
+                problem, seen = notice, False  # the labels are looked at again once it is moved
+                self.tell("waiting", step, asked, labelled, round_index, n, problem, digest)
+                self.nap()
+                continue
             if not own:
                 print(f"queries: {queries_file} is no longer the file this run wrote for round "
                       f"{round_index} (digest {digest}); writing it again", flush=True)

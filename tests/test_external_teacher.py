@@ -337,3 +337,42 @@ def test_a_labels_file_is_read_by_its_content_not_its_time_stamp(tmp_path):
         os.utime(path, ns=(stamp, stamp))
 
     assert asked(tmp_path, write) == [1.0, 1.0]
+
+
+def test_a_folder_in_place_of_the_queries_file_is_one_line_and_the_wait_goes_on(tmp_path, capsys):
+    """A folder at `queries/R.npz` cannot be replaced: the run says so once (and on the page) instead of failing
+    with a traceback, writes the queries once it is moved, and takes the answers to them."""
+    import torch
+
+    args = SimpleNamespace(env_id="cartpole-swingup", max_feedback=10, total_timesteps=100)
+    teacher = ExternalTeacher(str(tmp_path), args, [], Stopped, poll_seconds=0.02)
+    folder = tmp_path / "queries" / "0.npz"
+    folder.mkdir(parents=True)
+    notices = []
+
+    def answer_once_noticed():
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            message = (status(tmp_path)["message"] or "") if (tmp_path / "teacher.json").exists() else ""
+            if "folder" in message and folder.is_dir():
+                notices.append(message)
+                time.sleep(0.1)  # a few more polls with the folder there: still one line
+                folder.rmdir()
+            if folder.is_file():  # answers bound to the queries now written (a bare list could race their write)
+                (tmp_path / "labels").mkdir(exist_ok=True)
+                answers = {"queries": status(tmp_path)["digest"], "answers": [1, 0]}
+                (tmp_path / "labels" / "0.json").write_text(json.dumps(answers))
+                return
+            time.sleep(0.02)
+
+    helper = threading.Thread(target=answer_once_noticed)
+    helper.start()
+    keep, labels, _, _ = teacher.ask(0, "cartpole-swingup", 5, torch.zeros(2, 2, 3, 6), torch.zeros(2, 2, 3),
+                                     np.zeros((2, 2, 3, 4)), step=0, asked=0, labelled=0)
+    helper.join()
+    assert keep.tolist() == [True, True] and labels.tolist() == [1.0, 0.0]
+    notice = f"queries: {folder}: a folder, not a file: move it; this run writes round 0's queries there"
+    assert notices == [notice]
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("queries:")]
+    assert lines[0] == notice and lines.count(notice) == 1
+    assert status(tmp_path)["message"] is None and status(tmp_path)["phase"] == "training"
