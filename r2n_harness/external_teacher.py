@@ -76,10 +76,9 @@ class ExternalTeacher:
         page), and the queries are written when it is moved. A bare list of answers names no
         queries: it is read only at a look that finds the run's own queries file in place, else moved
         aside too. Both files are read by their content at every poll, not by their time stamps.
-        Returns the answered
-        pairs' mask and labels (0 where skipped), both on the segments' device, the labels file's
-        SHA-256 and the seconds waited. A stop signal raises `stopped`: the state written before the
-        round resumes into it."""
+        Returns the answered pairs' mask and labels (0 where skipped), both on the segments' device,
+        the labels file's SHA-256 and the seconds waited. A stop signal raises `stopped`: the state
+        written before the round resumes into it."""
         rows = segments.cpu().numpy()
         queries_file = f"{self.folder}/queries/{round_index}.npz"
         written = npz_bytes(env_id=env_id, obs=rows[..., :obs_dim], actions=rows[..., obs_dim:],

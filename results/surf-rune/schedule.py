@@ -28,9 +28,9 @@ BLOCKED = {"surf": "a SURF-family run takes about 3 hours alone at two threads, 
 
 def left(runs: str) -> dict:
     """family -> the preset's runs of that family not yet in `runs`, in the preset's order; and how many it has."""
-    out = {}
+    runs_planned, out = benchmark.expand(benchmark.Args(preset="surf-rune")), {}
     for family, arms in FAMILIES.items():
-        planned = [run for run in benchmark.expand(benchmark.Args(preset="surf-rune")) if run.method in arms]
+        planned = [run for run in runs_planned if run.method in arms]
         out[family] = ([run for run in planned if not os.path.exists(os.path.join(runs, run.run_id, "done"))],
                        len(planned))
     return out
