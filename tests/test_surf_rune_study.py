@@ -285,44 +285,66 @@ def load_schedule():
     return module
 
 
-def test_schedule_runs_rune_two_pairs_a_session_while_surf_waits(tmp_path):
-    """The SURF family is blocked (a run is longer than a session): RUNE's next two pairs, two at a time at one
-    thread, and a line that says what waits; nothing once RUNE's runs are in."""
+def run_in(folder, arm, seed):
+    """A run that is in, as far as the schedule looks: its folder with a `done` file."""
+    os.makedirs(os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}"))
+    open(os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}", "done"), "w").write("exit code 0\n")
+
+
+def cut_off(scratch, arm, seed):
+    """A run that a session's end cut off: its `state.pt` in the launcher's scratch folder."""
+    run_id = f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}"
+    os.makedirs(os.path.join(scratch, run_id, "runs", run_id))
+    open(os.path.join(scratch, run_id, "runs", run_id, "state.pt"), "wb").close()
+
+
+def test_schedule_gives_two_pairs_at_one_thread_in_the_protocols_order_and_the_cut_off_family_first(tmp_path):
+    """Each session: two pairs at one thread, of the family furthest behind (SURF's on a tie), in the preset's order;
+    the family whose run was cut off first, while this machine keeps its state; the actor/critic-only arm last;
+    nothing once every run is in."""
     power = load_power()
-    args, said = schedule(tmp_path)
-    assert args == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds", "1", "2",
-                    "--threads", "1", "--workers", "2"]
-    assert "the SURF family's 28 runs wait: a SURF-family run takes about 3 hours" in said
-    synthetic_run(tmp_path, power.RUNE, 1, 100.0)  # half a pair in: the grid covers the next four unfinished
-    assert schedule(tmp_path)[0][6:-4] == ["1", "2", "3"]
-    for seed in range(1, 11):
+    runs, scratch = tmp_path / "runs", tmp_path / "scratch"
+    runs.mkdir()
+    scratch.mkdir()
+    args, said = schedule(runs)  # nothing in: SURF's family, on the tie
+    assert args == ["--preset", "surf-rune", "--methods", power.SURF, power.R2N_SURF, "--seeds", "1", "2",
+                    "--threads", "1", "--workers", "2"] and said == ""
+    for seed in (1, 2, 3, 4):
         for arm in (power.RUNE, power.R2N_RUNE):
-            synthetic_run(tmp_path, arm, seed, 100.0)
-    args, said = schedule(tmp_path)
-    assert args == [] and "28 runs wait" in said
+            run_in(runs, arm, seed)  # RUNE's 8/20 in, SURF's 0/28
+    cut_off(scratch, power.RUNE, 5)
+    run_in(runs, power.SURF, 1)
+    schedule_module = load_schedule()
+    plan = lambda: schedule_module.next_session(str(runs), str(scratch))  # noqa: E731
+    # RUNE seed 5's state is on this machine: RUNE goes on, though SURF's family is further behind
+    assert plan()[3:] == [power.RUNE, power.R2N_RUNE, "--seeds", "5", "6", "--threads", "1", "--workers", "2"]
+    # without it, SURF's family; half a pair in, so the grid covers the three runs that are next, not a fifth
+    assert schedule_module.next_session(str(runs))[3:] == [power.R2N_SURF, power.SURF, "--seeds", "1", "2",
+                                                            "--threads", "1", "--workers", "2"]
+    assert subprocess.run([sys.executable, os.path.join(STUDY, "schedule.py"), str(runs), str(scratch)],
+                          capture_output=True, text=True, check=True, timeout=120).stdout.split()[6:8] == ["5", "6"]
 
 
-def test_schedule_alternates_the_families_in_the_protocols_order_when_none_is_blocked(tmp_path):
-    """Unblocked, a SURF-family run alone at two threads while its family is no further on than RUNE's; else RUNE's
-    runs; the actor/critic-only arm last; nothing once every run is in."""
+def test_schedule_never_starts_a_run_outside_the_preset_and_ends_with_the_actor_critic_only_arm(tmp_path):
+    """SURF is planned for seeds 1-8, R2N-SURF for 1-10: the methods x seeds grid must not reach SURF seed 9. Once
+    both arms are in, the actor/critic-only arm; a blocked family waits, and says why."""
     power, schedule_module = load_power(), load_schedule()
-    schedule_module.BLOCKED = {}
-    plan = lambda: schedule_module.next_session(str(tmp_path))  # noqa: E731
-    assert plan() == ["--preset", "surf-rune", "--methods", power.SURF, "--seeds", "1", "--threads", "2",
-                      "--workers", "1"]
-    synthetic_run(tmp_path, power.SURF, 1, 100.0)  # SURF's family 1/28 in, RUNE's 0/20
-    assert plan() == ["--preset", "surf-rune", "--methods", power.RUNE, power.R2N_RUNE, "--seeds", "1", "2",
-                      "--threads", "1", "--workers", "2"]
-    for seed in (1, 2):
-        for arm in (power.RUNE, power.R2N_RUNE):
-            synthetic_run(tmp_path, arm, seed, 100.0)  # RUNE's 4/20 in: SURF's next, R2N-SURF seed 1
-    assert plan()[3:6] == [power.R2N_SURF, "--seeds", "1"]
     for run in benchmark.expand(benchmark.Args(preset="surf-rune")):
-        if run.method != power.AGENT:
-            synthetic_run(tmp_path, run.method, run.seed, 100.0)
-    assert plan()[3:6] == [power.AGENT, "--seeds", "1"]  # the actor/critic-only arm comes last
+        if run.method in (power.SURF, power.R2N_SURF) and run.seed <= 7 or run.method in (power.RUNE, power.R2N_RUNE):
+            run_in(tmp_path, run.method, run.seed)
+    plan = lambda: schedule_module.next_session(str(tmp_path))  # noqa: E731
+    assert plan()[3:9] == [power.SURF, power.R2N_SURF, "--seeds", "8", "--threads", "1"]
+    run_in(tmp_path, power.SURF, 8)
+    run_in(tmp_path, power.R2N_SURF, 8)
+    assert plan()[3:8] == [power.R2N_SURF, "--seeds", "9", "10", "--threads"]
+    run_in(tmp_path, power.R2N_SURF, 9)
+    run_in(tmp_path, power.R2N_SURF, 10)
+    assert plan()[3:10] == [power.AGENT, "--seeds", "1", "2", "3", "4", "--threads"]
+    schedule_module.BLOCKED = {"surf": "a reason"}
+    assert plan() == []
+    schedule_module.BLOCKED = {}
     for seed in range(1, 11):
-        synthetic_run(tmp_path, power.AGENT, seed, 100.0)
+        run_in(tmp_path, power.AGENT, seed)
     assert plan() == []
 
 

@@ -5,12 +5,12 @@
 #   bash results/surf-rune/continue.sh [WORKTREE]     # default WORKTREE: ../surf-rune-$COMMIT
 #   bash results/surf-rune/continue.sh --dry-run      # this session's runs, nothing started
 #
-# 1. A git worktree at the protocol's commit (made once), holding a copy of the committed runs, so that the launcher
-#    skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (RUNE's runs two at a
-#    time at one thread, two pairs; the SURF family is blocked: a machine keeps nothing between sessions, so a run
-#    must finish in its own, and a SURF-family run takes about 3 hours), at the lowest priority (nice 19 on the
-#    launcher's and each run's autogroup, so that the machine's other work comes first). Start it at a session's
-#    start.
+# 1. A git worktree at the protocol's commit (made once per machine), holding a copy of the committed runs, so that
+#    the launcher skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (two pairs,
+#    two runs at a time at one thread; first the family whose run a session's end cut off, which resumes from its
+#    `state.pt` where this machine still holds it), at the lowest priority (nice 19 on the launcher's and each run's
+#    autogroup, so that the machine's other work comes first). Start it at a session's start, and again when its
+#    launcher has stopped with time left in the session.
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
 #    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
@@ -67,8 +67,10 @@ watch() {  # until the launcher has stopped and every finished run is committed
 }
 [ "$mode" = --watch ] && { watch; exit 0; }
 [ -e "$STUDY/STOPPED" ] && { echo "$STUDY/STOPPED: the stop rule fired; write the bug search down first" >&2; exit 1; }
-if [ ! -d "$work" ]; then
+if [ ! -d "$work" ]; then  # a new machine: a run cut off on another starts over whole
+    git worktree prune
     git worktree add --detach "$work" "$COMMIT" > /dev/null
+    echo "new worktree: $work"
 fi
 [ "$(git -C "$work" rev-parse --short=7 HEAD)" = "$COMMIT" ] || { echo "$work is not at $COMMIT" >&2; exit 1; }
 mkdir -p "$work/$STUDY/runs"
@@ -76,7 +78,10 @@ for run in "$STUDY"/runs/*/; do  # the committed runs, so that the launcher skip
     [ -d "$run" ] || continue
     [ -e "$work/$STUDY/runs/$(basename "$run")/done" ] || cp -r "$run" "$work/$STUDY/runs/"
 done
-plan=$(python "$STUDY/schedule.py")
+for state in "$work"/logs/scratch/*/runs/*/state.pt; do
+    [ -f "$state" ] && echo "resumes from its state.pt: $(basename "$(dirname "$state")")"
+done
+plan=$(python "$STUDY/schedule.py" "$STUDY/runs" "$work/logs/scratch")
 read -ra session <<< "$plan"
 [ "${#session[@]}" -gt 0 ] || { echo "no run can start (schedule.py says why, if one waits); once all 48 are in: bash $STUDY/analyze.sh" >&2; exit 0; }
 echo "this session: benchmark.py ${session[*]}"

@@ -1,13 +1,14 @@
-"""What a session of the surf-rune study runs (PROTOCOL.md, the additions of 2026-12-06): `continue.sh` asks it.
+"""What a session of the surf-rune study runs (PROTOCOL.md, its additions): `continue.sh` asks it.
 
-    python results/surf-rune/schedule.py [RUNS]   # prints the launcher's arguments, or nothing when no run can go
+    python results/surf-rune/schedule.py [RUNS [SCRATCH]]   # the launcher's arguments, or nothing when no run can go
 
-A machine here keeps nothing between sessions (180 minutes each), so a run must finish in the session that starts
-it. RUNE's runs take about an hour, two at a time at one thread. A SURF-family run takes about 3 hours even alone at
-two threads: more than a session, so that family is blocked (`BLOCKED`) until a run can carry its state across
-sessions. A session runs one family that is not blocked: SURF's if the share of its runs that are in is at most
-RUNE's, else RUNE's. In each family, the runs go in the preset's order (the protocol's), minus those in.
+RUNS is the committed runs' folder, SCRATCH the worktree's `logs/scratch`, where a run cut off by a session's end
+keeps its `state.pt` while the machine keeps it. A session (180 minutes) first goes on with the family whose run is
+in progress there: its state lives on this machine only, and a new machine starts it over whole. Else it runs the
+family whose share of runs in is the smaller (SURF's on a tie). Every run takes one torch thread, two at a time, at
+most two pairs a session. In each family, the runs go in the preset's order (the protocol's), minus those in.
 """
+import glob
 import os
 import sys
 
@@ -19,11 +20,9 @@ sys.path.insert(0, power.ROOT)
 import benchmark  # noqa: E402 (the repository's: the preset)
 
 FAMILIES = {"surf": (power.SURF, power.R2N_SURF, power.AGENT), "rune": (power.RUNE, power.R2N_RUNE)}
-# (threads a run, runs at a time, runs a session starts at most)
-SETTINGS = {"surf": (2, 1, 1), "rune": (1, 2, 4)}  # RUNE: two pairs, about 2 hours
-# family -> why none of its runs can start (PROTOCOL.md, the second addition of 2026-12-06)
-BLOCKED = {"surf": "a SURF-family run takes about 3 hours alone at two threads, more than a 180-minute session, and "
-                   "its state (0.7-1.2 GB) cannot be carried to the next one"}
+THREADS, WORKERS, MOST = 1, 2, 4  # one thread a run (the protocol's Design), two at a time, two pairs a session
+# family -> why none of its runs can start; none since the addition of 2026-12-07
+BLOCKED = {}
 
 
 def left(runs: str) -> dict:
@@ -36,25 +35,45 @@ def left(runs: str) -> dict:
     return out
 
 
-def next_session(runs: str) -> list:
+def in_progress(scratch: str) -> set:
+    """The run ids with a `state.pt` in the launcher's scratch folder."""
+    return {path.split(os.sep)[-2] for path in glob.glob(os.path.join(scratch, "*", "runs", "*", "state.pt"))}
+
+
+def first_grid(rest: list, done: set) -> list:
+    """The longest head of `rest`, at most MOST runs, that the launcher's methods x seeds grid covers exactly: the
+    grid's runs are that head or runs already in, so that no run outside the head (nor outside the preset) starts."""
+    for size in range(min(MOST, len(rest)), 0, -1):
+        head = {(run.method, run.seed) for run in rest[:size]}
+        grid = {(method, seed) for method, _ in head for _, seed in head}
+        if grid - done == head:
+            return rest[:size]
+    return []
+
+
+def next_session(runs: str, scratch: str = "") -> list:
     """The launcher's arguments for this session's runs (empty once every run is in)."""
-    todo = left(runs)
+    todo, started = left(runs), in_progress(scratch) if scratch else set()
     share = {family: 1 - len(rest) / total for family, (rest, total) in todo.items()}
     families = [family for family in ("surf", "rune") if todo[family][0] and family not in BLOCKED]
     if not families:
         return []
-    family = min(families, key=lambda f: share[f])  # the family furthest behind; SURF's on a tie
-    threads, workers, most = SETTINGS[family]
-    chosen = todo[family][0][:most]
+    # a family with a run in progress first, then the one furthest behind; SURF's on a tie
+    family = min(families, key=lambda f: (not started & {run.run_id for run in todo[f][0]}, share[f]))
+    planned = {(run.method, run.seed) for run in benchmark.expand(benchmark.Args(preset="surf-rune"))
+               if run.method in FAMILIES[family]}
+    rest = todo[family][0]
+    chosen = first_grid(rest, planned - {(run.method, run.seed) for run in rest})
     methods = list(dict.fromkeys(run.method for run in chosen))
     seeds = list(dict.fromkeys(run.seed for run in chosen))
-    return (["--preset", "surf-rune", "--methods", *methods, "--seeds", *map(str, seeds), "--threads", str(threads),
-             "--workers", str(workers)])
+    return (["--preset", "surf-rune", "--methods", *methods, "--seeds", *map(str, seeds), "--threads", str(THREADS),
+             "--workers", str(WORKERS)])
 
 
 if __name__ == "__main__":
     runs = sys.argv[1] if len(sys.argv) > 1 else os.path.join(STUDY, "runs")
+    scratch = sys.argv[2] if len(sys.argv) > 2 else ""
     for family, (rest, _) in left(runs).items():
         if rest and family in BLOCKED:
             print(f"schedule: the {family.upper()} family's {len(rest)} runs wait: {BLOCKED[family]}", file=sys.stderr)
-    print(" ".join(next_session(runs)))
+    print(" ".join(next_session(runs, scratch)))
