@@ -348,6 +348,41 @@ def test_schedule_never_starts_a_run_outside_the_preset_and_ends_with_the_actor_
     assert plan() == []
 
 
+@pytest.mark.parametrize("last_line, stopped, chained", [
+    ("4 runs finished, 0 skipped as already finished, 0 failed", False, True),
+    ("2 runs finished, 0 skipped as already finished, 2 stopped or not started (the same command resumes them), "
+     "0 failed", False, False),
+    ("3 runs finished, 0 skipped as already finished, 1 failed", False, False),
+    ("4 runs finished, 0 skipped as already finished, 0 failed", True, False),
+    ("Traceback (most recent call last):", False, False),
+])
+def test_watcher_starts_the_next_plan_only_when_every_run_of_its_launcher_finished(tmp_path, last_line, stopped,
+                                                                                     chained):
+    """continue.sh's watcher, once its launcher has stopped: the next plan (continue.sh again, same worktree) when its
+    launcher's last line says every run finished; not after a stopped or failed run, a crash, or under `STOPPED`."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    study = repo / "results" / "surf-rune"
+    study.mkdir(parents=True)
+    (study / "PROTOCOL.md").write_text("the protocol\n")
+    subprocess.run(["git", "add", "results"], cwd=repo, check=True)
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "protocol"], cwd=repo,
+                   check=True)
+    (study / "continue.sh").write_text('echo "$@" > chained.txt\n')  # stands for the next plan's start
+    if stopped:
+        (study / "STOPPED").write_text("the stop rule fired\n")
+    launcher = subprocess.Popen(["true"])  # a launcher that has stopped: the watcher makes one pass
+    launcher.wait()
+    work.mkdir()
+    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+    (work / "launcher.log").write_text(f"running 4 runs, 2 at a time\n{last_line}\n")
+    subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo, check=True,
+                   timeout=60, capture_output=True)
+    assert (repo / "chained.txt").exists() == chained
+    if chained:
+        assert (repo / "chained.txt").read_text().split() == [str(work)]
+
+
 def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):
     """Once all 48 runs are in, `analysis/` is committed, and its tests and diagnostics are what the scripts make of
     the committed runs now. Before, it holds no test."""

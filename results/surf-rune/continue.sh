@@ -9,13 +9,13 @@
 #    the launcher skips them: `benchmark.py` there with the arguments `schedule.py` gives for this session (two pairs,
 #    two runs at a time at one thread; first the family whose run a session's end cut off, which resumes from its
 #    `state.pt` where this machine still holds it), at the lowest priority (nice 19 on the launcher's and each run's
-#    autogroup, so that the machine's other work comes first). Start it at a session's start, and again when its
-#    launcher has stopped with time left in the session.
+#    autogroup, so that the machine's other work comes first). Start it at a session's start.
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
 #    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
-# launcher stops when this session's runs are in, the watcher when the launcher has stopped and nothing is left to commit.
+# launcher stops when its plan's runs are in, the watcher when the launcher has stopped and nothing is left to commit;
+# if every run of the plan finished, the watcher then starts the next plan, so the runs go on until the session ends.
 # Nothing starts while `STOPPED` is here: the protocol wants the bug search written down first.
 set -euo pipefail
 STUDY=results/surf-rune
@@ -65,7 +65,18 @@ watch() {  # until the launcher has stopped and every finished run is committed
         sleep 60
     done
 }
-[ "$mode" = --watch ] && { watch; exit 0; }
+finished_all() {  # the launcher's last line: every run of its plan finished, none stopped, none failed
+    tail -n 1 "$work/launcher.log" | grep -Eq '^[0-9]+ runs finished, [0-9]+ skipped as already finished, 0 failed$'
+}
+if [ "$mode" = --watch ]; then
+    watch
+    # the machine stays busy: the next plan starts (nothing while `STOPPED` is here, or once every run is in)
+    if finished_all && [ ! -e "$STUDY/STOPPED" ]; then
+        echo "$(date -u +%FT%TZ) the launcher's runs are in: the next plan"
+        exec bash "$main/$STUDY/continue.sh" "$work"
+    fi
+    exit 0
+fi
 [ -e "$STUDY/STOPPED" ] && { echo "$STUDY/STOPPED: the stop rule fired; write the bug search down first" >&2; exit 1; }
 if [ ! -d "$work" ]; then  # a new machine: a run cut off on another starts over whole
     git worktree prune
