@@ -287,8 +287,9 @@ def load_schedule():
 
 def run_in(folder, arm, seed):
     """A run that is in, as far as the schedule looks: its folder with a `done` file."""
-    os.makedirs(os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}"))
-    open(os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}", "done"), "w").write("exit code 0\n")
+    path = os.path.join(folder, f"{arm}__cheetah-run__noise0.9__budget1000__seed{seed}")
+    os.makedirs(path)
+    open(os.path.join(path, "done"), "w").write("exit code 0\n")
 
 
 def cut_off(scratch, arm, seed):
@@ -299,9 +300,8 @@ def cut_off(scratch, arm, seed):
 
 
 def test_schedule_gives_two_pairs_at_one_thread_in_the_protocols_order_and_the_cut_off_family_first(tmp_path):
-    """Each session: two pairs at one thread, of the family furthest behind (SURF's on a tie), in the preset's order;
-    the family whose run was cut off first, while this machine keeps its state; the actor/critic-only arm last;
-    nothing once every run is in."""
+    """Each plan: two pairs at one thread, of the family furthest behind (SURF's on a tie), in the preset's order;
+    the family whose run was cut off first, while this machine keeps its state."""
     power = load_power()
     runs, scratch = tmp_path / "runs", tmp_path / "scratch"
     runs.mkdir()
@@ -327,7 +327,7 @@ def test_schedule_gives_two_pairs_at_one_thread_in_the_protocols_order_and_the_c
 
 def test_schedule_never_starts_a_run_outside_the_preset_and_ends_with_the_actor_critic_only_arm(tmp_path):
     """SURF is planned for seeds 1-8, R2N-SURF for 1-10: the methods x seeds grid must not reach SURF seed 9. Once
-    both arms are in, the actor/critic-only arm; a blocked family waits, and says why."""
+    both arms are in, the actor/critic-only arm; a blocked family waits; nothing once every run is in."""
     power, schedule_module = load_power(), load_schedule()
     for run in benchmark.expand(benchmark.Args(preset="surf-rune")):
         if run.method in (power.SURF, power.R2N_SURF) and run.seed <= 7 or run.method in (power.RUNE, power.R2N_RUNE):

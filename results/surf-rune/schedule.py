@@ -6,7 +6,7 @@ RUNS is the committed runs' folder, SCRATCH the worktree's `logs/scratch`, where
 keeps its `state.pt` while the machine keeps it. A session (180 minutes) first goes on with the family whose run is
 in progress there: its state lives on this machine only, and a new machine starts it over whole. Else it runs the
 family whose share of runs in is the smaller (SURF's on a tie). Every run takes one torch thread, two at a time, at
-most two pairs a session. In each family, the runs go in the preset's order (the protocol's), minus those in.
+most two pairs a plan; the watcher starts the next plan when one is in. In each family, the runs go in the preset's order (the protocol's), minus those in.
 """
 import glob
 import os
@@ -20,18 +20,18 @@ sys.path.insert(0, power.ROOT)
 import benchmark  # noqa: E402 (the repository's: the preset)
 
 FAMILIES = {"surf": (power.SURF, power.R2N_SURF, power.AGENT), "rune": (power.RUNE, power.R2N_RUNE)}
-THREADS, WORKERS, MOST = 1, 2, 4  # one thread a run (the protocol's Design), two at a time, two pairs a session
+THREADS, WORKERS, MOST = 1, 2, 4  # one thread a run (the protocol's Design), two at a time, two pairs a plan
 # family -> why none of its runs can start; none since the addition of 2026-12-07
 BLOCKED = {}
 
 
 def left(runs: str) -> dict:
-    """family -> the preset's runs of that family not yet in `runs`, in the preset's order; and how many it has."""
+    """family -> the preset's runs of that family not yet in `runs`, in the preset's order; and all it plans."""
     runs_planned, out = benchmark.expand(benchmark.Args(preset="surf-rune")), {}
     for family, arms in FAMILIES.items():
         planned = [run for run in runs_planned if run.method in arms]
         out[family] = ([run for run in planned if not os.path.exists(os.path.join(runs, run.run_id, "done"))],
-                       len(planned))
+                       planned)
     return out
 
 
@@ -54,16 +54,14 @@ def first_grid(rest: list, done: set) -> list:
 def next_session(runs: str, scratch: str = "") -> list:
     """The launcher's arguments for this session's runs (empty once every run is in)."""
     todo, started = left(runs), in_progress(scratch) if scratch else set()
-    share = {family: 1 - len(rest) / total for family, (rest, total) in todo.items()}
+    share = {family: 1 - len(rest) / len(planned) for family, (rest, planned) in todo.items()}
     families = [family for family in ("surf", "rune") if todo[family][0] and family not in BLOCKED]
     if not families:
         return []
     # a family with a run in progress first, then the one furthest behind; SURF's on a tie
     family = min(families, key=lambda f: (not started & {run.run_id for run in todo[f][0]}, share[f]))
-    planned = {(run.method, run.seed) for run in benchmark.expand(benchmark.Args(preset="surf-rune"))
-               if run.method in FAMILIES[family]}
-    rest = todo[family][0]
-    chosen = first_grid(rest, planned - {(run.method, run.seed) for run in rest})
+    rest, planned = todo[family]
+    chosen = first_grid(rest, {(run.method, run.seed) for run in planned if run not in rest})
     methods = list(dict.fromkeys(run.method for run in chosen))
     seeds = list(dict.fromkeys(run.seed for run in chosen))
     return (["--preset", "surf-rune", "--methods", *methods, "--seeds", *map(str, seeds), "--threads", str(THREADS),
