@@ -6,8 +6,10 @@ import glob
 import importlib.util
 import math
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -381,6 +383,45 @@ def test_watcher_starts_the_next_plan_only_when_every_run_of_its_launcher_finish
     assert (repo / "chained.txt").exists() == chained
     if chained:
         assert (repo / "chained.txt").read_text().split() == [str(work)]
+
+
+LAUNCHER_STUB = """import os, signal, sys, time
+signal.signal(signal.SIGTERM, lambda *_: (open("terminated", "w").close(), sys.exit(1)))
+open("pid", "w").write(str(os.getpid()))
+time.sleep(60)
+"""
+
+
+def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tmp_path):
+    """`launcher.pid` is what the stop rule and a session's end send SIGTERM to: the launcher's process, not a shell
+    around it (a shell would die alone and leave the launcher and its runs going)."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    study = repo / "results" / "surf-rune"
+    study.mkdir(parents=True)
+    (study / "PROTOCOL.md").write_text("the protocol\n")
+    (repo / "benchmark.py").write_text(LAUNCHER_STUB)  # stands for the launcher, in the worktree at that commit
+    (study / "schedule.py").write_text('print("--preset surf-rune")\n')
+    subprocess.run(["git", "add", "."], cwd=repo, check=True)
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "protocol"], cwd=repo,
+                   check=True)
+    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), str(work)], cwd=repo, check=True, timeout=60, env=env)
+    try:
+        for _ in range(100):
+            if (work / "pid").exists() and (work / "pid").read_text():
+                break
+            time.sleep(0.1)
+        pid = int((work / "launcher.pid").read_text())
+        assert pid == int((work / "pid").read_text())
+        os.kill(pid, signal.SIGTERM)
+        for _ in range(100):
+            if (work / "terminated").exists():
+                break
+            time.sleep(0.1)
+        assert (work / "terminated").exists()
+    finally:
+        subprocess.run(["pkill", "-f", str(work)])  # the launcher, if the test failed, and the watcher
 
 
 def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):

@@ -103,8 +103,11 @@ fi
 if [ -f "$work/launcher.pid" ] && kill -0 "$(cat "$work/launcher.pid")" 2> /dev/null; then
     echo "a launcher is running already: $work/launcher.log" >&2; exit 1
 fi
-(cd "$work" && setsid nohup nice -n 19 python benchmark.py "${session[@]}" \
-    > "$work/launcher.log" 2>&1 < /dev/null & echo $! > "$work/launcher.pid")
+# `$!` is the launcher itself: a background job is no process-group leader here, so `setsid` needs no fork of its own
+cd "$work"
+setsid nohup nice -n 19 python benchmark.py "${session[@]}" > "$work/launcher.log" 2>&1 < /dev/null &
+echo $! > "$work/launcher.pid"
+cd "$main"
 lowest_priority "$(cat "$work/launcher.pid")"
 setsid nohup bash "$main/$STUDY/continue.sh" --watch "$work" >> "$work/watcher.log" 2>&1 < /dev/null &
 echo "launcher: $work/launcher.log; watcher: $work/watcher.log; the runs' logs: $work/logs/"
