@@ -4,6 +4,7 @@ the tests as the protocol fixes them, on synthetic runs whose primary metrics ar
 before every run is in; the diagnostics."""
 import glob
 import importlib.util
+import json
 import math
 import os
 import shutil
@@ -264,6 +265,22 @@ def test_diagnostics_name_a_sparse_layer_at_chance(tmp_path):
     assert "| `surf_stored_noise` | 8 | none (dense reward) |" in text
     surf = next(line for line in text.splitlines() if line.startswith("| `surf_stored_noise` |") and "mean" in line)
     assert "0.700 ± 0.000; mean 0.700 ± 0.000" in surf
+    assert "| `surf_stored_noise` | 0 of 8 | - | - | - |" in text  # no members.json yet
+
+
+def test_diagnostics_count_constant_reward_members(tmp_path):
+    synthetic_study(tmp_path)
+    member = {"label_accuracy": 1.0, "share_at_bound": 0.5, "median_abs_preactivation": 3.0, "constant": False}
+    dead = dict(member, label_accuracy=0.5, share_at_bound=1.0, constant=True)
+    for seed, members in ((1, [dead, member, member]), (2, [member, member, member])):
+        path = tmp_path / "runs" / f"surf_stored_noise__cheetah-run__noise0.9__budget1000__seed{seed}" / "members.json"
+        path.write_text(json.dumps(members))
+    result = study_script(tmp_path, "diagnostics.py", "--out", str(tmp_path / "d.md"))
+    assert result.returncode == 0, result.stderr
+    text = (tmp_path / "d.md").read_text()
+    # 2 runs: one constant member in one run; at the bound (2/3 and 1/2 of the rewards); accuracy (5/6 and 1)
+    assert "| `surf_stored_noise` | 2 of 8 | 1 (1) | 0.583 ± 0.083 | 0.917 ± 0.083 |" in text
+    assert "| `rune_stored_noise` | 0 of 10 | - | - | - |" in text
 
 
 def schedule(runs):
@@ -384,6 +401,91 @@ def test_watcher_starts_the_next_plan_only_when_every_run_of_its_launcher_finish
     assert (repo / "chained.txt").exists() == chained
     if chained:
         assert (repo / "chained.txt").read_text().split() == [str(work)]
+
+
+def tiny_run_with_a_constant_member(folder, crop=2):
+    """A run folder as a SURF run leaves it: a final model whose reward member 0 tanh holds at +1 on every input
+    (its output bias 1e4), and labelled pairs whose labels member 1 gets right on the central steps only."""
+    import surf  # the repository's, for its RewardEnsemble
+    import torch
+    torch.manual_seed(0)
+    obs_dim, act_dim = 6, 2
+    model = surf.RewardEnsemble(obs_dim + act_dim, 16, 2, 3)
+    with torch.no_grad():
+        model.biases[-1][0] += 1e4
+    os.makedirs(os.path.join(folder, "preferences"))
+    rows = torch.randn(40, 2, 6 + 2 * crop, obs_dim + act_dim)
+    with torch.no_grad():
+        returns = model(rows[:, :, crop:rows.shape[2] - crop].reshape(-1, obs_dim + act_dim))[1].view(40, 2, -1).sum(-1)
+    labels = (returns[:, 1] > returns[:, 0]).float().numpy()
+    labels[:3] = 0.5  # equal labels: left out of the accuracy
+    for i in range(4):  # four rounds of 10 pairs, named as the query log names them
+        part = slice(10 * i, 10 * (i + 1))
+        np.savez(os.path.join(folder, "preferences", f"{i}.npz"), obs=rows[part, :, :, :obs_dim].numpy(),
+                 actions=rows[part, :, :, obs_dim:].numpy(), labels=labels[part])
+    torch.save({"args": {"reward_hidden_dim": 16, "reward_layers": 2, "surf_crop": crop}, "global_step": 300,
+                "obs_dim": obs_dim, "act_dim": act_dim, "reward_models": model.member_state_dicts()},
+               os.path.join(folder, "surf_stored_noise.cleanrl_model"))
+
+
+def test_members_names_a_member_that_tanh_holds_constant(tmp_path):
+    tiny_run_with_a_constant_member(tmp_path / "run")
+    result = subprocess.run([sys.executable, os.path.join(STUDY, "members.py"), str(tmp_path / "run"),
+                             str(tmp_path / "members.json")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "1 of 3 members constant" in result.stdout
+    members = json.loads((tmp_path / "members.json").read_text())
+    assert [m["constant"] for m in members] == [True, False, False] and {m["step"] for m in members} == {300}
+    assert members[0]["share_at_bound"] == 1.0 and members[0]["median_abs_preactivation"] > 9000
+    assert members[1]["label_accuracy"] == 1.0  # its labels, on the central steps, equal labels left out
+    assert members[0]["label_accuracy"] < 0.8  # a constant member ties every pair
+
+
+def test_members_reads_the_labelled_steps_of_surfs_longer_segments(tmp_path):
+    """SURF stores `surf_crop` steps either side of the ones the teacher labelled: only those count."""
+    tiny_run_with_a_constant_member(tmp_path / "run")
+    spec = importlib.util.spec_from_file_location("surf_rune_members", os.path.join(STUDY, "members.py"))
+    members = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(members)
+    rows, labels = members.labelled_pairs(str(tmp_path / "run"), 2)
+    assert rows.shape == (40, 2, 6, 8) and labels.shape == (40,)
+    whole, _ = members.labelled_pairs(str(tmp_path / "run"), 0)
+    assert whole.shape == (40, 2, 10, 8) and np.array_equal(whole[:, :, 2:8].numpy(), rows.numpy())
+
+
+def test_watcher_commits_a_finished_run_with_its_members(tmp_path):
+    """The watcher copies a finished run into `runs/`, adds `members.json` from the final model in the worktree's
+    scratch folder, and commits both; the first-seeds stop rule does not fire on a seed-2 run."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    study = repo / "results" / "surf-rune"
+    study.mkdir(parents=True)
+    (study / "PROTOCOL.md").write_text("the protocol\n")
+    for name in ("members.py", "stop_rule.py", "power.py"):
+        os.symlink(os.path.join(STUDY, name), study / name)
+    os.symlink(os.path.join(ROOT, "analyze.py"), repo / "analyze.py")
+    env = dict(os.environ, GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@t", GIT_COMMITTER_NAME="t",
+               GIT_COMMITTER_EMAIL="t@t", PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    subprocess.run(["git", "add", "."], cwd=repo, check=True)
+    subprocess.run(["git", "commit", "-q", "-m", "protocol"], cwd=repo, check=True, env=env)
+    run_id = "surf_stored_noise__cheetah-run__noise0.9__budget1000__seed2"
+    tiny_run_with_a_constant_member(work / "logs" / "scratch" / run_id / "runs" / run_id)
+    finished = work / "results" / "surf-rune" / "runs" / run_id
+    finished.mkdir(parents=True)
+    (finished / "done").write_text("exit code 0\ncpu AMD EPYC, torch CPU capability AVX512\nseconds 9\n")
+    launcher = subprocess.Popen(["true"])  # a launcher that has stopped: the watcher makes one pass
+    launcher.wait()
+    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+    (work / "launcher.log").write_text("running 1 run\nTraceback (most recent call last):\n")  # no next plan
+    subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo, check=True,
+                   timeout=120, capture_output=True, env=env)
+    committed = subprocess.run(["git", "show", "--name-only", "--format=%s", "HEAD"], cwd=repo, capture_output=True,
+                               text=True, check=True).stdout.split()
+    assert f"results/surf-rune/runs/{run_id}/done" in committed
+    assert f"results/surf-rune/runs/{run_id}/members.json" in committed
+    assert [m["constant"] for m in json.loads((study / "runs" / run_id / "members.json").read_text())] == [
+        True, False, False]
+    assert not (study / "STOPPED").exists()
 
 
 LAUNCHER_STUB = """import os, signal, sys, time

@@ -11,7 +11,8 @@
 #    `state.pt` where this machine still holds it), at the lowest priority (nice 19 on the launcher's and each run's
 #    autogroup, so that the machine's other work comes first). Start it at a session's start.
 # 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
-#    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message. Then it checks the
+#    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message, with `members.json`
+#    (`members.py`: its reward members at the end, from the final model in the worktree). Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
 # launcher stops when its plan's runs are in, the watcher when the launcher has stopped and nothing is left to commit;
@@ -46,6 +47,9 @@ watch() {  # until the launcher has stopped and every finished run is committed
             [ -f "$folder/done" ] && [ ! -f "$STUDY/runs/$id/done" ] || continue
             mkdir -p "$STUDY/runs/$id"
             cp "$folder"/* "$STUDY/runs/$id/"
+            # its reward members at the end, from the final model that only this machine holds (members.py)
+            nice -n 19 python "$STUDY/members.py" "$work/logs/scratch/$id/runs/$id" "$STUDY/runs/$id/members.json" ||
+                echo "$(date -u +%FT%TZ) members.py failed for $id: committed without members.json"
             cpu=$(sed -n 's/^cpu //p' "$STUDY/runs/$id/done")
             seconds=$(sed -n 's/^seconds //p' "$STUDY/runs/$id/done")
             for _ in 1 2 3 4 5 6 7 8 9 10; do  # another git command may hold the index for a moment

@@ -6,11 +6,13 @@ files.
 For each arm, over its seeds (mean ± SE of each run's last value): the reward members' topology updates a run,
 `features/{net}/relevant_weight_frac` of the actor, the critics and the reward members against its chance,
 `sparse/{net}/relevant_active_frac` of every sparse layer, `pbrl/reward_true_corr`, `pbrl/heldout_accuracy`, SURF's
-share of pseudo-labels kept (`pbrl/pseudo_label_rate`) and RUNE's bonus (`pbrl/beta`, `losses/rune_bonus`). Then the
-mechanisms' stop rule: a sparse layer at chance in every seed, or an arm whose learning curve stays below 50, is
-named. Unlike `hypotheses.py` it reads whatever runs are in.
+share of pseudo-labels kept (`pbrl/pseudo_label_rate`) and RUNE's bonus (`pbrl/beta`, `losses/rune_bonus`), and
+the reward members at the run's end (`members.json`, written by `members.py`: constant members, share of rewards at
+tanh's bound, label accuracy). Then the mechanisms' stop rule: a sparse layer at chance in every seed, or an arm
+whose learning curve stays below 50, is named. Unlike `hypotheses.py` it reads whatever runs are in.
 """
 import argparse
+import json
 import os
 import sys
 
@@ -44,6 +46,15 @@ def cell(values) -> str:
 
 def run_mean(run, tag: str) -> float:
     return float(np.mean(run.scalars[tag][1])) if tag in run.scalars else float("nan")
+
+
+def members_of(run):
+    """The run's `members.json` (a list, one entry per reward member), or None where it has none."""
+    path = os.path.join(os.path.dirname(run.path), "members.json")
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
 
 
 def report(arms: dict) -> list:
@@ -81,6 +92,21 @@ def report(arms: dict) -> list:
             final, mean = cell([h.last(r, tag) for r in runs]), cell([run_mean(r, tag) for r in runs])
             cells.append("-" if final == "-" else f"{final}; mean {mean}")
         lines.append(f"| `{arm}` | " + " | ".join(cells) + " |")
+    lines += ["", "## The reward members at the run's end (`members.json`, from `members.py`; added 2026-12-07)", "",
+              "From each run's final model on its labelled pairs. A constant member outputs one value on every input "
+              "(tanh's gradient is 0 there): it never trains again. At the bound: |reward| > 0.999. The reference "
+              "arms have no `members.json`.", "",
+              "| arm | runs with it | constant members (runs with one) | share of rewards at the bound | "
+              "members' label accuracy |", "|---|---|---|---|---|"]
+    for arm, runs in arms.items():
+        found = [m for m in map(members_of, runs) if m is not None]
+        if not found:
+            lines.append(f"| `{arm}` | 0 of {len(runs)} | - | - | - |")
+            continue
+        constant = [sum(member["constant"] for member in run) for run in found]
+        lines.append(f"| `{arm}` | {len(found)} of {len(runs)} | {sum(constant)} ({sum(c > 0 for c in constant)}) | "
+                     f"{cell([np.mean([m['share_at_bound'] for m in run]) for run in found])} | "
+                     f"{cell([np.mean([m['label_accuracy'] for m in run]) for run in found])} |")
     lines += ["", "## Stop rule (mechanisms)", ""] + (stop_rule(arms) or [
         "Nothing to look into: no sparse layer stays at chance in every seed, and every arm's curve reaches 50."])
     return lines
