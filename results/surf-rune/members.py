@@ -6,8 +6,8 @@
 RUN_FOLDER holds the run's `{exp_name}.cleanrl_model` and `preferences/` (the launcher's scratch folder of the run).
 Per member (with the model's step): its accuracy on the run's labelled pairs (equal labels left out), the share of
 its per-step rewards at tanh's bound (|r| > 0.999), the median |pre-activation| of its output, and whether it is
-constant (its rewards' SD below 1e-6). A constant member sits where tanh's gradient is 0 on every input: it never trains again, and the
-ensemble mean the agent learns from carries only the others' signal.
+constant (its rewards' SD below 1e-6). A constant member sits where tanh's gradient is 0 on every input: it never
+trains again, and the ensemble mean the agent learns from carries only the others' signal.
 """
 import glob
 import json
