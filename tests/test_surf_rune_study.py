@@ -495,9 +495,9 @@ time.sleep(60)
 """
 
 
-def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tmp_path):
-    """`launcher.pid` is what the stop rule and a session's end send SIGTERM to: the launcher's process, not a shell
-    around it (a shell would die alone and leave the launcher and its runs going)."""
+def start_on_a_stub_launcher(tmp_path, before=None, pgrep=None):
+    """`continue.sh` in a repository whose `benchmark.py` is LAUNCHER_STUB; `before(repo)` runs first, and `pgrep`, if
+    given, is the script of a `pgrep` put first on PATH. Returns (repo, work, continue.sh's stdout)."""
     repo, work = tmp_path / "repo", tmp_path / "work"
     subprocess.run(["git", "init", "-q", str(repo)], check=True)
     study = repo / "results" / "surf-rune"
@@ -508,13 +508,33 @@ def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tm
     subprocess.run(["git", "add", "."], cwd=repo, check=True)
     subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "protocol"], cwd=repo,
                    check=True)
-    env = dict(os.environ, PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
-    subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), str(work)], cwd=repo, check=True, timeout=60, env=env)
+    path = [os.path.dirname(sys.executable), os.environ["PATH"]]
+    if pgrep is not None:
+        (tmp_path / "bin").mkdir()
+        (tmp_path / "bin" / "pgrep").write_text(pgrep)
+        os.chmod(tmp_path / "bin" / "pgrep", 0o755)
+        path.insert(0, str(tmp_path / "bin"))
+    if before:
+        before(repo)
+    result = subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), str(work)], cwd=repo, check=True, timeout=60,
+                            env=dict(os.environ, PATH=os.pathsep.join(path)), capture_output=True, text=True)
+    for _ in range(100):  # the launcher has started when the stub wrote its pid
+        if (work / "pid").exists() and (work / "pid").read_text():
+            break
+        time.sleep(0.1)
+    return repo, work, result.stdout
+
+
+def stop_everything_in(work):
+    if shutil.which("pkill"):  # the launcher, if a test failed, and the watcher (it would end within a minute)
+        subprocess.run(["pkill", "-f", str(work)])
+
+
+def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tmp_path):
+    """`launcher.pid` is what the stop rule and a session's end send SIGTERM to: the launcher's process, not a shell
+    around it (a shell would die alone and leave the launcher and its runs going)."""
     try:
-        for _ in range(100):
-            if (work / "pid").exists() and (work / "pid").read_text():
-                break
-            time.sleep(0.1)
+        repo, work, _ = start_on_a_stub_launcher(tmp_path)
         pid = int((work / "launcher.pid").read_text())
         assert pid == int((work / "pid").read_text())
         os.kill(pid, signal.SIGTERM)
@@ -524,8 +544,53 @@ def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tm
             time.sleep(0.1)
         assert (work / "terminated").exists()
     finally:
-        if shutil.which("pkill"):  # the launcher, if the test failed, and the watcher (it would end within a minute)
-            subprocess.run(["pkill", "-f", str(work)])
+        stop_everything_in(tmp_path / "work")
+
+
+@pytest.mark.parametrize("git_running", [False, True])
+def test_continue_sh_removes_a_stale_index_lock_only_when_no_git_command_runs(tmp_path, git_running):
+    """A session's end can kill the watcher's `git commit` and leave `.git/index.lock`: every later commit would fail
+    on it. The next start removes it, unless a git command is running (then the lock is that command's)."""
+    def lock(repo):
+        (repo / ".git" / "index.lock").write_text("")
+    try:
+        repo, work, out = start_on_a_stub_launcher(tmp_path, before=lock,
+                                                   pgrep="#!/bin/sh\necho 4242\n" if git_running else "#!/bin/sh\nexit 1\n")
+        assert (repo / ".git" / "index.lock").exists() == git_running
+        assert ("removed a stale" in out) != git_running
+    finally:
+        stop_everything_in(tmp_path / "work")
+
+
+def test_watcher_commits_a_run_whose_earlier_commit_failed(tmp_path):
+    """A run copied here whose commit failed (its `done` here, not in HEAD) is committed at the watcher's next pass:
+    "committed" is what HEAD holds, not what the folder holds."""
+    repo, work = tmp_path / "repo", tmp_path / "work"
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    study = repo / "results" / "surf-rune"
+    study.mkdir(parents=True)
+    (study / "PROTOCOL.md").write_text("the protocol\n")
+    for name in ("members.py", "stop_rule.py", "power.py"):
+        os.symlink(os.path.join(STUDY, name), study / name)
+    os.symlink(os.path.join(ROOT, "analyze.py"), repo / "analyze.py")
+    env = dict(os.environ, GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@t", GIT_COMMITTER_NAME="t",
+               GIT_COMMITTER_EMAIL="t@t", PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
+    subprocess.run(["git", "add", "."], cwd=repo, check=True)
+    subprocess.run(["git", "commit", "-q", "-m", "protocol"], cwd=repo, check=True, env=env)
+    run_id = "rune_stored_noise__cheetah-run__noise0.9__budget1000__seed3"
+    done = "exit code 0\ncpu AMD EPYC, torch CPU capability AVX512\nseconds 9\n"
+    for folder in (work / "results" / "surf-rune" / "runs" / run_id, study / "runs" / run_id):
+        folder.mkdir(parents=True)  # in the worktree, and copied here by a pass whose commit failed
+        (folder / "done").write_text(done)
+    subprocess.run(["git", "add", "."], cwd=repo, check=True)  # even staged: only HEAD counts
+    launcher = subprocess.Popen(["true"])
+    launcher.wait()
+    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+    (work / "launcher.log").write_text("running 1 run\nTraceback (most recent call last):\n")  # no next plan
+    result = subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo, check=True,
+                            timeout=120, capture_output=True, text=True, env=env)
+    assert f"committed {run_id}" in result.stdout
+    assert subprocess.run(["git", "cat-file", "-e", f"HEAD:results/surf-rune/runs/{run_id}/done"], cwd=repo).returncode == 0
 
 
 def test_committed_analysis_is_what_the_committed_runs_give(tmp_path):

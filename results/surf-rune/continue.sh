@@ -10,8 +10,8 @@
 #    two runs at a time at one thread; first the family whose run a session's end cut off, which resumes from its
 #    `state.pt` where this machine still holds it), at the lowest priority (nice 19 on the launcher's and each run's
 #    autogroup, so that the machine's other work comes first). Start it at a session's start.
-# 2. A watcher: when a run's `done` file appears in the worktree, its folder is copied into `runs/` here and
-#    committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message, with `members.json`
+# 2. A watcher: when a run's `done` file appears in the worktree and HEAD here has none, its folder is copied into
+#    `runs/` here and committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message, with `members.json`
 #    (`members.py`: its reward members at the end, from the final model in the worktree). Then it checks the
 #    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
@@ -36,15 +36,17 @@ lowest_priority() {  # the launcher and each run are sessions of their own, so `
     done
 }
 
+committed() { git cat-file -e "HEAD:$STUDY/runs/$1/done" 2> /dev/null; }
 watch() {  # until the launcher has stopped and every finished run is committed
-    local launcher running id folder cpu seconds message
+    local launcher running pending id folder cpu seconds message
     launcher=$(cat "$work/launcher.pid")
     while true; do
-        running=""
+        running="" pending=""
         kill -0 "$launcher" 2> /dev/null && running=1
         for folder in "$work/$STUDY"/runs/*/; do
             id=$(basename "$folder")
-            [ -f "$folder/done" ] && [ ! -f "$STUDY/runs/$id/done" ] || continue
+            # not yet committed: a commit that failed (the index locked) is tried again at the next pass
+            [ -f "$folder/done" ] && ! committed "$id" || continue
             mkdir -p "$STUDY/runs/$id"
             cp "$folder"/* "$STUDY/runs/$id/"
             # its reward members at the end, from the final model that only this machine holds (members.py)
@@ -57,6 +59,8 @@ watch() {  # until the launcher has stopped and every finished run is committed
                     "surf-rune: $id (commit $COMMIT, $cpu, $seconds)" -- "$STUDY/runs/$id" && break
                 sleep 5
             done
+            committed "$id" || { pending=1; echo "$(date -u +%FT%TZ) could not commit $id: tried again in a minute"
+                                 continue; }
             echo "$(date -u +%FT%TZ) committed $id"
             if ! message=$(python "$STUDY/stop_rule.py"); then
                 kill -TERM "$launcher" 2> /dev/null || true
@@ -64,7 +68,7 @@ watch() {  # until the launcher has stopped and every finished run is committed
                 echo "$(date -u +%FT%TZ) $message; launcher stopped"
             fi
         done
-        [ -n "$running" ] || return 0
+        [ -n "$running$pending" ] || return 0
         lowest_priority "$launcher"
         sleep 60
     done
@@ -82,6 +86,12 @@ if [ "$mode" = --watch ]; then
     exit 0
 fi
 [ -e "$STUDY/STOPPED" ] && { echo "$STUDY/STOPPED: the stop rule fired; write the bug search down first" >&2; exit 1; }
+# a git command killed by the last session's end leaves its lock, and every commit here would fail on it
+lock="$(git rev-parse --absolute-git-dir)/index.lock"
+if [ "$mode" != --dry-run ] && [ -e "$lock" ] && ! pgrep -x git > /dev/null; then
+    rm -f "$lock"
+    echo "removed a stale $lock (no git command is running)"
+fi
 if [ ! -d "$work" ]; then  # a new machine: a run cut off on another starts over whole
     git worktree prune
     git worktree add --detach "$work" "$COMMIT" > /dev/null
