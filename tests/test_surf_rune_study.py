@@ -453,9 +453,9 @@ def test_members_reads_the_labelled_steps_of_surfs_longer_segments(tmp_path):
     assert whole.shape == (40, 2, 10, 8) and np.array_equal(whole[:, :, 2:8].numpy(), rows.numpy())
 
 
-def test_watcher_commits_a_finished_run_with_its_members(tmp_path):
-    """The watcher copies a finished run into `runs/`, adds `members.json` from the final model in the worktree's
-    scratch folder, and commits both; the first-seeds stop rule does not fire on a seed-2 run."""
+def watcher_repo(tmp_path):
+    """A repository with the protocol committed and the scripts the watcher runs, and a worktree folder beside it.
+    Returns (repo, work, the study's folder, an environment in which git can commit)."""
     repo, work = tmp_path / "repo", tmp_path / "work"
     subprocess.run(["git", "init", "-q", str(repo)], check=True)
     study = repo / "results" / "surf-rune"
@@ -468,15 +468,27 @@ def test_watcher_commits_a_finished_run_with_its_members(tmp_path):
                GIT_COMMITTER_EMAIL="t@t", PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
     subprocess.run(["git", "add", "."], cwd=repo, check=True)
     subprocess.run(["git", "commit", "-q", "-m", "protocol"], cwd=repo, check=True, env=env)
+    return repo, work, study, env
+
+
+def stopped_launcher(work):
+    """A launcher that has stopped, after a crash: the watcher makes one pass and starts no next plan."""
+    launcher = subprocess.Popen(["true"])
+    launcher.wait()
+    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+    (work / "launcher.log").write_text("running 1 run\nTraceback (most recent call last):\n")
+
+
+def test_watcher_commits_a_finished_run_with_its_members(tmp_path):
+    """The watcher copies a finished run into `runs/`, adds `members.json` from the final model in the worktree's
+    scratch folder, and commits both; the first-seeds stop rule does not fire on a seed-2 run."""
+    repo, work, study, env = watcher_repo(tmp_path)
     run_id = "surf_stored_noise__cheetah-run__noise0.9__budget1000__seed2"
     tiny_run_with_a_constant_member(work / "logs" / "scratch" / run_id / "runs" / run_id)
     finished = work / "results" / "surf-rune" / "runs" / run_id
     finished.mkdir(parents=True)
     (finished / "done").write_text("exit code 0\ncpu AMD EPYC, torch CPU capability AVX512\nseconds 9\n")
-    launcher = subprocess.Popen(["true"])  # a launcher that has stopped: the watcher makes one pass
-    launcher.wait()
-    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
-    (work / "launcher.log").write_text("running 1 run\nTraceback (most recent call last):\n")  # no next plan
+    stopped_launcher(work)
     subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo, check=True,
                    timeout=120, capture_output=True, env=env)
     committed = subprocess.run(["git", "show", "--name-only", "--format=%s", "HEAD"], cwd=repo, capture_output=True,
@@ -565,28 +577,14 @@ def test_continue_sh_removes_a_stale_index_lock_only_when_no_git_command_runs(tm
 def test_watcher_commits_a_run_whose_earlier_commit_failed(tmp_path):
     """A run copied here whose commit failed (its `done` here, not in HEAD) is committed at the watcher's next pass:
     "committed" is what HEAD holds, not what the folder holds."""
-    repo, work = tmp_path / "repo", tmp_path / "work"
-    subprocess.run(["git", "init", "-q", str(repo)], check=True)
-    study = repo / "results" / "surf-rune"
-    study.mkdir(parents=True)
-    (study / "PROTOCOL.md").write_text("the protocol\n")
-    for name in ("members.py", "stop_rule.py", "power.py"):
-        os.symlink(os.path.join(STUDY, name), study / name)
-    os.symlink(os.path.join(ROOT, "analyze.py"), repo / "analyze.py")
-    env = dict(os.environ, GIT_AUTHOR_NAME="t", GIT_AUTHOR_EMAIL="t@t", GIT_COMMITTER_NAME="t",
-               GIT_COMMITTER_EMAIL="t@t", PATH=os.path.dirname(sys.executable) + os.pathsep + os.environ["PATH"])
-    subprocess.run(["git", "add", "."], cwd=repo, check=True)
-    subprocess.run(["git", "commit", "-q", "-m", "protocol"], cwd=repo, check=True, env=env)
+    repo, work, study, env = watcher_repo(tmp_path)
     run_id = "rune_stored_noise__cheetah-run__noise0.9__budget1000__seed3"
     done = "exit code 0\ncpu AMD EPYC, torch CPU capability AVX512\nseconds 9\n"
     for folder in (work / "results" / "surf-rune" / "runs" / run_id, study / "runs" / run_id):
         folder.mkdir(parents=True)  # in the worktree, and copied here by a pass whose commit failed
         (folder / "done").write_text(done)
     subprocess.run(["git", "add", "."], cwd=repo, check=True)  # even staged: only HEAD counts
-    launcher = subprocess.Popen(["true"])
-    launcher.wait()
-    (work / "launcher.pid").write_text(f"{launcher.pid}\n")
-    (work / "launcher.log").write_text("running 1 run\nTraceback (most recent call last):\n")  # no next plan
+    stopped_launcher(work)
     result = subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo, check=True,
                             timeout=120, capture_output=True, text=True, env=env)
     assert f"committed {run_id}" in result.stdout
