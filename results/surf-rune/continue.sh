@@ -11,13 +11,15 @@
 #    `state.pt` where this machine still holds it), at the lowest priority (nice 19 on the launcher's and each run's
 #    autogroup, so that the machine's other work comes first). Start it at a session's start.
 # 2. A watcher: when a run's `done` file appears in the worktree and HEAD here has none, its folder is copied into
-#    `runs/` here and committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message, with `members.json`
-#    (`members.py`: its reward members at the end, from the final model in the worktree). Then it checks the
-#    first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
+#    `runs/` here and committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message,
+#    with `members.json` (`members.py`: its reward members at the end, from the final model in the worktree). Then it
+#    checks the first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
 # launcher stops when its plan's runs are in, the watcher when the launcher has stopped and nothing is left to commit;
 # if every run of the plan finished, the watcher then starts the next plan, so the runs go on until the session ends.
-# Nothing starts while `STOPPED` is here: the protocol wants the bug search written down first.
+# Nothing starts while `STOPPED` is here: the protocol wants the bug search written down first. A commit that fails is
+# tried again at the next pass; a stale `.git/index.lock` is removed. The tests shorten the watcher's waits with
+# WATCH_TRIES (commit tries a pass, 10), WATCH_PAUSE (seconds between them, 5) and WATCH_PASS (between passes, 60).
 set -euo pipefail
 STUDY=results/surf-rune
 main=$(git rev-parse --show-toplevel)
@@ -37,6 +39,15 @@ lowest_priority() {  # the launcher and each run are sessions of their own, so `
 }
 
 committed() { git cat-file -e "HEAD:$STUDY/runs/$1/done" 2> /dev/null; }
+lock="$(git rev-parse --absolute-git-dir)/index.lock"
+unlock_if_stale() {  # a git command killed mid-commit (by a session's end) leaves its lock: every commit would fail
+    local age
+    age=$(($(date +%s) - $(stat -c %Y "$lock" 2> /dev/null || date +%s)))  # 0 without a lock
+    if [ "$age" -ge 60 ] && ! pgrep -x git > /dev/null; then
+        rm -f "$lock"
+        echo "$(date -u +%FT%TZ) removed a stale $lock (no git command is running, the lock a minute old or more)"
+    fi
+}
 watch() {  # until the launcher has stopped and every finished run is committed
     local launcher running pending id folder cpu seconds message
     launcher=$(cat "$work/launcher.pid")
@@ -54,10 +65,11 @@ watch() {  # until the launcher has stopped and every finished run is committed
                 echo "$(date -u +%FT%TZ) members.py failed for $id: committed without members.json"
             cpu=$(sed -n 's/^cpu //p' "$STUDY/runs/$id/done")
             seconds=$(sed -n 's/^seconds //p' "$STUDY/runs/$id/done")
-            for _ in 1 2 3 4 5 6 7 8 9 10; do  # another git command may hold the index for a moment
+            unlock_if_stale
+            for _ in $(seq "${WATCH_TRIES:-10}"); do  # another git command may hold the index for a moment
                 git add -- "$STUDY/runs/$id" && git commit -q -m \
                     "surf-rune: $id (commit $COMMIT, $cpu, $seconds)" -- "$STUDY/runs/$id" && break
-                sleep 5
+                sleep "${WATCH_PAUSE:-5}"
             done
             committed "$id" || { pending=1; echo "$(date -u +%FT%TZ) could not commit $id: tried again in a minute"
                                  continue; }
@@ -70,7 +82,7 @@ watch() {  # until the launcher has stopped and every finished run is committed
         done
         [ -n "$running$pending" ] || return 0
         lowest_priority "$launcher"
-        sleep 60
+        sleep "${WATCH_PASS:-60}"
     done
 }
 finished_all() {  # the launcher's last line: every run of its plan finished, none stopped, none failed
@@ -86,12 +98,7 @@ if [ "$mode" = --watch ]; then
     exit 0
 fi
 [ -e "$STUDY/STOPPED" ] && { echo "$STUDY/STOPPED: the stop rule fired; write the bug search down first" >&2; exit 1; }
-# a git command killed by the last session's end leaves its lock, and every commit here would fail on it
-lock="$(git rev-parse --absolute-git-dir)/index.lock"
-if [ "$mode" != --dry-run ] && [ -e "$lock" ] && ! pgrep -x git > /dev/null; then
-    rm -f "$lock"
-    echo "removed a stale $lock (no git command is running)"
-fi
+[ "$mode" = --dry-run ] || unlock_if_stale
 if [ ! -d "$work" ]; then  # a new machine: a run cut off on another starts over whole
     git worktree prune
     git worktree add --detach "$work" "$COMMIT" > /dev/null
@@ -123,5 +130,9 @@ setsid nohup nice -n 19 python benchmark.py "${session[@]}" > "$work/launcher.lo
 echo $! > "$work/launcher.pid"
 cd "$main"
 lowest_priority "$(cat "$work/launcher.pid")"
+# one watcher: an earlier one still trying to commit gives way (a watcher keeps no state); a chained start is it
+watcher=$(cat "$work/watcher.pid" 2> /dev/null || true)
+[ -n "$watcher" ] && [ "$watcher" != $$ ] && grep -qs -- --watch "/proc/$watcher/cmdline" && kill "$watcher" || true
 setsid nohup bash "$main/$STUDY/continue.sh" --watch "$work" >> "$work/watcher.log" 2>&1 < /dev/null &
+echo $! > "$work/watcher.pid"
 echo "launcher: $work/launcher.log; watcher: $work/watcher.log; the runs' logs: $work/logs/"

@@ -4,10 +4,10 @@
     python results/surf-rune/members.py RUN_FOLDER OUT_JSON
 
 RUN_FOLDER holds the run's `{exp_name}.cleanrl_model` and `preferences/` (the launcher's scratch folder of the run).
-Per member (with the model's step): its accuracy on the run's labelled pairs (equal labels left out), the share of
-its per-step rewards at tanh's bound (|r| > 0.999), the median |pre-activation| of its output, and whether it is
-constant (its rewards' SD below 1e-6). A constant member sits where tanh's gradient is 0 on every input: it never
-trains again, and the ensemble mean the agent learns from carries only the others' signal.
+Per member (with the model's step): its accuracy on the run's labelled pairs (equal and skipped ones left out, a tie
+half right), the share of its per-step rewards at tanh's bound (|r| > 0.999), the median |pre-activation| of its
+output, and whether it is constant (its rewards' SD below 1e-6). A constant member sits where tanh's gradient is 0 on
+every input: it never trains again, and the ensemble mean the agent learns from carries only the others' signal.
 """
 import glob
 import json
@@ -26,9 +26,7 @@ CONSTANT = 1e-6  # a member whose rewards' SD is below this outputs one value
 
 def labelled_pairs(folder: str, crop: int):
     """The run's labelled pairs: rows (P, 2, H, obs + action) over the labelled steps, and labels (P,)."""
-    files = sorted(glob.glob(os.path.join(folder, "preferences", "*.npz")),
-                   key=lambda f: int(os.path.basename(f)[:-4]))
-    parts = [np.load(f) for f in files]
+    parts = [np.load(f) for f in sorted(glob.glob(os.path.join(folder, "preferences", "*.npz")))]
     rows = np.concatenate([np.concatenate([p["obs"], p["actions"]], -1) for p in parts])
     labels = np.concatenate([p["labels"] for p in parts])
     if crop:  # SURF stores crop steps either side of the H steps the teacher labelled
@@ -53,8 +51,10 @@ def members(folder: str) -> list:
         rewards = torch.tanh(pre)
         assert torch.equal(rewards, model(rows.reshape(-1, rows.shape[-1]))), "not the model's forward"
     returns = rewards.view(len(states), *rows.shape[:3]).sum(-1)  # (E, P, 2)
-    clear = labels != 0.5
-    correct = ((returns[:, clear, 1] > returns[:, clear, 0]).float() == labels[clear]).float().mean(-1)
+    clear = (labels == 0) | (labels == 1)  # not equal (0.5), nor skipped (NaN)
+    first, second, label = returns[:, clear, 0], returns[:, clear, 1], labels[clear]
+    # a tie (a constant member ties every pair) is half right, as a coin would be
+    correct = torch.where(first == second, 0.5, ((second > first).float() == label).float()).mean(-1)
     return [{"member": e, "step": saved["global_step"], "label_accuracy": round(float(correct[e]), 4),
              "share_at_bound": round(float((rewards[e].abs() > AT_BOUND).float().mean()), 4),
              "median_abs_preactivation": round(float(pre[e].abs().median()), 2),
