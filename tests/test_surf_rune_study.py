@@ -606,6 +606,51 @@ exec {shutil.which("git")} "$@"
     assert subprocess.run(["git", "cat-file", "-e", f"HEAD:results/surf-rune/runs/{run_id}/done"], cwd=repo).returncode == 0
 
 
+@pytest.mark.parametrize("broken", [False, True])
+def test_watcher_stops_the_launcher_when_the_stop_rule_fires_and_not_when_the_rule_crashes(tmp_path, broken):
+    """A seed-1 SURF run at 20 fires the first-seeds stop rule: the watcher sends the launcher SIGTERM and writes
+    `STOPPED`. A stop_rule.py that crashes (exit 1, no "stop rule:" line) stops nothing, and the log says so."""
+    repo, work, study, env = watcher_repo(tmp_path)
+    if broken:
+        os.remove(study / "stop_rule.py")
+        (study / "stop_rule.py").write_text("raise ImportError('no module named torch')\n")
+    synthetic_run(work / "results" / "surf-rune" / "runs", "surf_stored_noise", 1, 20.0)
+    launcher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (work / "launcher.pid").write_text(f"{launcher.pid}\n")
+        (work / "launcher.log").write_text("running 4 runs, 2 at a time\n")
+        watcher = subprocess.Popen(["bash", os.path.join(STUDY, "continue.sh"), "--watch", str(work)], cwd=repo,
+                                   env=dict(env, WATCH_PASS="1"), stdout=subprocess.PIPE, text=True)
+        if not broken:
+            assert launcher.wait(timeout=60) == -signal.SIGTERM
+            out, _ = watcher.communicate(timeout=60)
+            assert "stop rule: surf_stored_noise__cheetah-run__noise0.9__budget1000__seed1 ended at 20.0" in out
+            assert "launcher stopped" in out and (study / "STOPPED").exists()
+        else:
+            for _ in range(300):
+                if (study / "runs" / "surf_stored_noise__cheetah-run__noise0.9__budget1000__seed1" / "done").exists():
+                    break
+                time.sleep(0.1)
+            time.sleep(3)  # the watcher's pass is over: it commits, reads the rule, and sleeps a second
+            assert launcher.poll() is None and not (study / "STOPPED").exists()
+            launcher.kill()
+            launcher.wait()  # reaped: a zombie would still answer the watcher's `kill -0`
+            out, _ = watcher.communicate(timeout=60)
+            assert "stop_rule.py failed, the stop rule is unchecked after surf_stored_noise" in out
+    finally:
+        launcher.kill()
+
+
+def test_continue_sh_refuses_without_the_projects_venv(tmp_path):
+    (tmp_path / "bin").mkdir()
+    (tmp_path / "bin" / "python").write_text("#!/bin/sh\nexit 1\n")  # a python without torch
+    os.chmod(tmp_path / "bin" / "python", 0o755)
+    result = subprocess.run(["bash", os.path.join(STUDY, "continue.sh"), "--dry-run"], cwd=ROOT, capture_output=True,
+                            text=True, timeout=60, env=dict(os.environ, PATH=f"{tmp_path / 'bin'}{os.pathsep}"
+                                                                             f"{os.environ['PATH']}"))
+    assert result.returncode == 1 and "activate the project's venv first" in result.stderr
+
+
 def test_watcher_commits_a_run_whose_earlier_commit_failed(tmp_path):
     """A run copied here whose commit failed (its `done` here, not in HEAD) is committed at the watcher's next pass:
     "committed" is what HEAD holds, not what the folder holds."""

@@ -13,7 +13,8 @@
 # 2. A watcher: when a run's `done` file appears in the worktree and HEAD here has none, its folder is copied into
 #    `runs/` here and committed alone (`git commit -- <its folder>`), its commit, CPU and seconds in the message,
 #    with `members.json` (`members.py`: its reward members at the end, from the final model in the worktree). Then it
-#    checks the first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED` here.
+#    checks the first-seeds stop rule (`stop_rule.py`): if it fires, the watcher stops the launcher and writes `STOPPED`
+#    here (a crash of `stop_rule.py` stops nothing: the log says so).
 # Logs: the worktree's `logs/`, and `launcher.log` and `watcher.log` in it. Both processes outlive the shell; the
 # launcher stops when its plan's runs are in, the watcher when the launcher has stopped and nothing is left to commit;
 # if every run of the plan finished, the watcher then starts the next plan, so the runs go on until the session ends.
@@ -26,6 +27,8 @@ main=$(git rev-parse --show-toplevel)
 # the protocol's commit: the one that added PROTOCOL.md
 COMMIT=$(git -C "$main" log --diff-filter=A --format=%h --abbrev=7 -- "$STUDY/PROTOCOL.md" | tail -n 1)
 [ -n "$COMMIT" ] || { echo "$STUDY/PROTOCOL.md is not committed: commit the protocol first" >&2; exit 1; }
+# the scripts below need the project's venv (a watcher started without it would find no stop rule)
+python -c "import torch, tensorboard" 2> /dev/null || { echo "continue.sh: activate the project's venv first" >&2; exit 1; }
 mode=${1:-}
 [[ $mode = --dry-run || $mode = --watch ]] && shift || mode=""
 work=$(realpath -m "${1:-$(dirname "$main")/surf-rune-$COMMIT}")
@@ -74,10 +77,14 @@ watch() {  # until the launcher has stopped and every finished run is committed
             committed "$id" || { pending=1; echo "$(date -u +%FT%TZ) could not commit $id: tried again in a minute"
                                  continue; }
             echo "$(date -u +%FT%TZ) committed $id"
-            if ! message=$(python "$STUDY/stop_rule.py"); then
+            # it fired when it says so; a crash of its own stops nothing, and says so
+            message=$(python "$STUDY/stop_rule.py" 2>&1) || true
+            if grep -q "^stop rule: " <<< "$message"; then
                 kill -TERM "$launcher" 2> /dev/null || true
                 printf '%s\n%s\n' "$(date -u +%FT%TZ)" "$message" > "$STUDY/STOPPED"
                 echo "$(date -u +%FT%TZ) $message; launcher stopped"
+            elif [ -n "$message" ]; then
+                echo "$(date -u +%FT%TZ) stop_rule.py failed, the stop rule is unchecked after $id: $message"
             fi
         done
         [ -n "$running$pending" ] || return 0

@@ -35,7 +35,10 @@ def labelled_pairs(folder: str, crop: int):
 
 
 def members(folder: str) -> list:
-    [path] = glob.glob(os.path.join(folder, "*.cleanrl_model"))
+    found = glob.glob(os.path.join(folder, "*.cleanrl_model"))
+    if len(found) != 1:
+        raise SystemExit(f"members.py: {folder} holds {len(found)} final models (*.cleanrl_model), not one")
+    [path] = found
     saved = torch.load(path, map_location="cpu", weights_only=False)
     args, states = saved["args"], saved["reward_models"]
     model = RewardEnsemble(saved["obs_dim"] + saved["act_dim"], args["reward_hidden_dim"], args["reward_layers"],
