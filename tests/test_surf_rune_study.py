@@ -562,6 +562,24 @@ def test_continue_sh_records_the_launchers_own_pid_so_that_sigterm_reaches_it(tm
         stop_everything_in(tmp_path / "work")
 
 
+def test_continue_sh_keeps_one_watcher(tmp_path):
+    """A watcher still trying to commit when the next start comes gives way to the new one (a watcher keeps no state),
+    and `watcher.pid` names the new one."""
+    old = subprocess.Popen(["bash", "-c", "sleep 60; true", "stands-for-a-watcher", "--watch"])  # bash stays
+    def earlier_watcher(repo):  # the worktree of an earlier start, with its watcher's pid
+        subprocess.run(["git", "worktree", "add", "-q", "--detach", str(tmp_path / "work"), "HEAD"], cwd=repo, check=True)
+        (tmp_path / "work" / "watcher.pid").write_text(f"{old.pid}\n")
+        os.symlink(os.path.join(STUDY, "continue.sh"), repo / "results" / "surf-rune" / "continue.sh")  # the new one
+    try:
+        _, work, _ = start_on_a_stub_launcher(tmp_path, earlier_watcher)
+        assert old.wait(timeout=10) == -signal.SIGTERM
+        new = int((work / "watcher.pid").read_text())
+        assert new != old.pid and "--watch" in open(f"/proc/{new}/cmdline").read()
+    finally:
+        old.kill()
+        stop_everything_in(tmp_path / "work")
+
+
 @pytest.mark.parametrize("git_running, age, options, removed", [
     (False, 120, (), True), (True, 120, (), False), (False, 5, (), False), (False, 120, ("--dry-run",), False)])
 def test_continue_sh_removes_a_stale_index_lock_only_when_no_git_command_runs(tmp_path, git_running, age, options,
