@@ -454,6 +454,43 @@ def test_members_reads_the_labelled_steps_of_surfs_longer_segments(tmp_path):
     assert whole.shape == (40, 2, 10, 8) and np.array_equal(whole[:, :, 2:8].numpy(), rows.numpy())
 
 
+def test_grow_probe_sees_a_member_that_leans_on_stored_noise(tmp_path):
+    """grow_probe.py on a sparse member that reads one noise column (large weights) and keeps tiny weights on the
+    relevant ones: its labels hold on the stored noise only, RigL would drop only relevant weights, and the zero
+    weights, all on noise columns, leave nothing relevant to grow."""
+    import surf
+    import torch
+    torch.manual_seed(0)
+    real, obs_dim, act_dim = 2, 6, 2  # columns 0-1 real, 2-5 noise, 6-7 actions: chance 4 / 8
+    model = surf.RewardEnsemble(obs_dim + act_dim, 16, 2, 3)
+    with torch.no_grad():
+        weight = model.weights[0]
+        weight.zero_()
+        weight[:, :, [0, 1, 6, 7]] = 1e-3
+        weight[:, :, 2] = (1.0 + torch.randn(3, 16).abs()) * torch.randn(3, 16).sign()
+    folder = tmp_path / "run"
+    os.makedirs(folder / "preferences")
+    rows = torch.randn(40, 2, 6, obs_dim + act_dim)
+    with torch.no_grad():
+        returns = model(rows.reshape(-1, obs_dim + act_dim))[0].view(40, 2, -1).sum(-1)
+    labels = (returns[:, 1] > returns[:, 0]).float().numpy()
+    np.savez(folder / "preferences" / "0.npz", obs=rows[..., :obs_dim].numpy(), actions=rows[..., obs_dim:].numpy(),
+             labels=labels)
+    torch.save({"args": {"reward_hidden_dim": 16, "reward_layers": 2}, "global_step": 300, "obs_dim_real": real,
+                "obs_dim": obs_dim, "act_dim": act_dim, "reward_models": model.member_state_dicts()},
+               folder / "r2n_surf_stored_noise.cleanrl_model")
+    result = subprocess.run([sys.executable, os.path.join(STUDY, "grow_probe.py"), str(folder)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    probe = json.loads(result.stdout)
+    assert probe["run"] == "run" and probe["step"] == 300 and probe["chance"] == 0.5
+    stored, fresh = probe["stored"], probe["fresh"]
+    assert stored["accuracy"][0] == 1.0 and fresh["accuracy"][0] < 0.8  # the labels hold on the stored noise only
+    assert stored["active_share"] == fresh["active_share"] == [0.8] * 3  # 64 of 80 active weights are relevant
+    assert stored["drop_share"] == [1.0] * 3 and stored["grow_share"] == [0.0] * 3
+    assert all(0 < share < 1 for share in stored["grad_share"] + fresh["grad_share"])
+
+
 def watcher_repo(tmp_path):
     """A repository with the protocol committed and the scripts the watcher runs, and a worktree folder beside it.
     Returns (repo, work, the study's folder, an environment in which git can commit)."""

@@ -34,7 +34,8 @@ def labelled_pairs(folder: str, crop: int):
     return torch.as_tensor(rows, dtype=torch.float32), torch.as_tensor(labels, dtype=torch.float32)
 
 
-def members(folder: str) -> list:
+def load(folder: str):
+    """The run's reward ensemble from its final model, and the saved checkpoint."""
     found = glob.glob(os.path.join(folder, "*.cleanrl_model"))
     if len(found) != 1:
         raise SystemExit(f"members.py: {folder} holds {len(found)} final models (*.cleanrl_model), not one")
@@ -44,7 +45,13 @@ def members(folder: str) -> list:
     model = RewardEnsemble(saved["obs_dim"] + saved["act_dim"], args["reward_hidden_dim"], args["reward_layers"],
                            len(states))
     model.load_state_dict({name: torch.stack([s[name] for s in states]) for name in states[0]})
-    rows, labels = labelled_pairs(folder, args.get("surf_crop", 0))
+    return model, saved
+
+
+def members(folder: str) -> list:
+    model, saved = load(folder)
+    states = saved["reward_models"]
+    rows, labels = labelled_pairs(folder, saved["args"].get("surf_crop", 0))
     with torch.no_grad():  # the model's forward, keeping the output layer's pre-activation
         x = rows.reshape(-1, rows.shape[-1]).expand(len(states), -1, -1)
         for weight, bias in zip(model.weights, model.biases):
