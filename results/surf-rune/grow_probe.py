@@ -23,7 +23,8 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from members import labelled_pairs, load  # noqa: E402 (this study's)
+from members import labelled_pairs, load  # noqa: E402 (this study's; it puts the repository on the path)
+from surf import preference_loss  # noqa: E402 (the same in every PbRL script)
 
 
 def shares(model, rows, labels, relevant, grow_fraction=0.2) -> dict:
@@ -31,9 +32,7 @@ def shares(model, rows, labels, relevant, grow_fraction=0.2) -> dict:
     weight = model.weights[0]
     model.zero_grad()
     returns = model(rows.reshape(-1, rows.shape[-1])).view(-1, *rows.shape[:3]).sum(-1)  # (E, P, 2)
-    log_probs = returns.log_softmax(-1)
-    loss = -((1 - labels) * log_probs[..., 0] + labels * log_probs[..., 1]).mean(-1)
-    loss.sum().backward()
+    preference_loss(returns, labels).sum().backward()
     first, second = returns[..., 0].detach(), returns[..., 1].detach()
     accuracy = torch.where(first == second, 0.5, ((second > first).float() == labels).float()).mean(-1)
     g = weight.grad.abs()  # (E, hidden, D)
