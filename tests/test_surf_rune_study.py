@@ -456,8 +456,8 @@ def test_members_reads_the_labelled_steps_of_surfs_longer_segments(tmp_path):
 
 def test_grow_probe_sees_a_member_that_leans_on_stored_noise(tmp_path):
     """grow_probe.py on a sparse member that reads one noise column (large weights) and keeps tiny weights on the
-    relevant ones: its labels hold on the stored noise only, RigL would drop only relevant weights, and the zero
-    weights, all on noise columns, leave nothing relevant to grow."""
+    relevant ones: its labels hold on the stored noise only, RigL would drop only relevant weights, and regrow none:
+    the zero weights' noise columns, 100 times larger as stored, carry the largest gradient."""
     import surf
     import torch
     torch.manual_seed(0)
@@ -471,6 +471,7 @@ def test_grow_probe_sees_a_member_that_leans_on_stored_noise(tmp_path):
     folder = tmp_path / "run"
     os.makedirs(folder / "preferences")
     rows = torch.randn(40, 2, 6, obs_dim + act_dim)
+    rows[..., 3:6] *= 100  # the model reads none of them: the labels do not change
     with torch.no_grad():
         returns = model(rows.reshape(-1, obs_dim + act_dim))[0].view(40, 2, -1).sum(-1)
     labels = (returns[:, 1] > returns[:, 0]).float().numpy()
@@ -487,7 +488,7 @@ def test_grow_probe_sees_a_member_that_leans_on_stored_noise(tmp_path):
     stored, fresh = probe["stored"], probe["fresh"]
     assert stored["accuracy"][0] == 1.0 and fresh["accuracy"][0] < 0.8  # the labels hold on the stored noise only
     assert stored["active_share"] == fresh["active_share"] == [0.8] * 3  # 64 of 80 active weights are relevant
-    assert stored["drop_share"] == [1.0] * 3 and stored["grow_share"] == [0.0] * 3
+    assert stored["drop_share"] == [1.0] * 3 and stored["grow_share"] == stored["regrown"] == [0.0] * 3
     assert all(0 < share < 1 for share in stored["grad_share"] + fresh["grad_share"])
 
 

@@ -34,6 +34,13 @@ def labelled_pairs(folder: str, crop: int):
     return torch.as_tensor(rows, dtype=torch.float32), torch.as_tensor(labels, dtype=torch.float32)
 
 
+def label_accuracy(returns: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Per member, the share of pairs (returns (E, P, 2), labels (P,) of 0 or 1) whose preferred segment it returns
+    higher. A tie (a constant member ties every pair) is half right, as a coin would be."""
+    first, second = returns[..., 0], returns[..., 1]
+    return torch.where(first == second, 0.5, ((second > first).float() == labels).float()).mean(-1)
+
+
 def load(folder: str):
     """The run's reward ensemble from its final model, and the saved checkpoint."""
     found = glob.glob(os.path.join(folder, "*.cleanrl_model"))
@@ -62,9 +69,7 @@ def members(folder: str) -> list:
         assert torch.equal(rewards, model(rows.reshape(-1, rows.shape[-1]))), "not the model's forward"
     returns = rewards.view(len(states), *rows.shape[:3]).sum(-1)  # (E, P, 2)
     clear = (labels == 0) | (labels == 1)  # not equal (0.5), nor skipped (NaN)
-    first, second, label = returns[:, clear, 0], returns[:, clear, 1], labels[clear]
-    # a tie (a constant member ties every pair) is half right, as a coin would be
-    correct = torch.where(first == second, 0.5, ((second > first).float() == label).float()).mean(-1)
+    correct = label_accuracy(returns[:, clear], labels[clear])
     return [{"member": e, "step": saved["global_step"], "label_accuracy": round(float(correct[e]), 4),
              "share_at_bound": round(float((rewards[e].abs() > AT_BOUND).float().mean()), 4),
              "median_abs_preactivation": round(float(pre[e].abs().median()), 2),
