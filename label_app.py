@@ -61,7 +61,8 @@ It binds to localhost. On a remote machine, forward the port: `ssh -L 8000:local
 http://localhost:8000 on your own (the Host check takes any port: a tunnel may forward another one). Without a
 display MuJoCo needs `MUJOCO_GL=egl` (GPU or Mesa) or `MUJOCO_GL=osmesa` (software); the app sets `egl` when
 neither `MUJOCO_GL` nor `DISPLAY` is set. For tests only, `R2N_LABEL_APP_CLIP_DELAY=SECONDS` delays every clip, so
-that a test sees the page before the clips have loaded.
+that a test sees the page before the clips have loaded, and `R2N_LABEL_APP_STATE_DELAY=SECONDS` every state reply
+once the state is read, so that a test sees a state that a submit has made stale.
 """
 import errno
 import glob
@@ -95,6 +96,7 @@ import ene  # noqa: E402
 MAX_BODY = 64 * 1024  # bytes of a POST: a round's answers take a few KiB at most
 SILENT_SECONDS = 15  # a waiting run rewrites teacher.json every ~2 s: this long without news, it is not responding
 CLIP_DELAY = float(os.environ.get("R2N_LABEL_APP_CLIP_DELAY", "0"))  # tests only: see the module docstring
+STATE_DELAY = float(os.environ.get("R2N_LABEL_APP_STATE_DELAY", "0"))  # tests only: see the module docstring
 
 
 @dataclass
@@ -574,6 +576,7 @@ const $ = (id) => document.getElementById(id);
 const SHOWN_MS = 1000;  // a query takes answers once its clips have been shown this long: a double click cannot
                         // answer the next query, whose clips were fetched ahead and appear at once
 let state = null, timer = null;  // the app's last /api/state, and the next refresh
+let submits = 0;  // submits ended: a state asked for before the last one ended may be older than its labels
 let round = null, n = 0, answers = [], submitting = false;  // the round being answered, and its answers so far
 let saved = null;  // the round this page saved last: should it wait again, the run did not take its labels
 let key = null, digest = null, storageProblem = null;  // where this tab keeps the answers, for which queries
@@ -748,7 +751,7 @@ async function submit() {
       "submit again";
     show();
   }
-  submitting = false; clearTimeout(timer); refresh();
+  submitting = false; ++submits; clearTimeout(timer); refresh();
 }
 function idle() {  // what the run is doing when no round is waiting
   const t = state.teacher;
@@ -777,10 +780,13 @@ function render() {
   if (round === null && !submitting) $("progress").textContent = idle();
 }
 async function refresh() {
+  const asked = submits;
   try {
     const reply = await fetch("/api/state");
     if (!reply.ok) throw new Error(await reply.text());
-    state = await reply.json();
+    const latest = await reply.json();
+    if (asked !== submits) return;  // asked for before a submit ended: the submit's own refresh polls on
+    state = latest;
     if (round !== null && !submitting && state.round !== round)
       drop(`round ${round} was answered elsewhere (another tab, another app or a script)`);
     if (round !== null && !submitting && state.queries_digest !== digest)  // a new run in this run's folder
@@ -798,6 +804,7 @@ async function refresh() {
     }
     tell("who");
   } catch (error) {
+    if (asked !== submits) return;
     $("notices").replaceChildren(Object.assign(document.createElement("p"),
       {textContent: `the page could not get the run's state (${error.message}); it tries again every 2 s`}));
   }
@@ -922,7 +929,9 @@ def make_handler(run_dir: str, clips: Clips, address: Address):
             if url.path == "/":
                 return 200, PAGE.encode(), "text/html; charset=utf-8"
             if url.path == "/api/state":  # strict JSON, which a browser can read: no NaN or Infinity
-                return 200, json.dumps(state(run_dir), allow_nan=False).encode(), "application/json"
+                body = json.dumps(state(run_dir), allow_nan=False).encode()
+                time.sleep(STATE_DELAY)
+                return 200, body, "application/json"
             match = re.fullmatch(rf"/clip/{ROUND}/{ROUND}/([01])\.gif", url.path)
             if not match:
                 raise Refused(404, f"no such page: {url.path}")

@@ -478,6 +478,29 @@ def test_label_app_malformed_labels_file_in_a_headless_browser(tmp_path):
 
 
 @needs_chromium
+def test_label_app_state_older_than_a_submit_in_a_headless_browser(tmp_path):
+    """A state read before a submit saved its round, and received after, is not the app's word that the round waits
+    again: the page keeps "saved" and does not ask the round again."""
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    run = make_run(tmp_path, (2,))
+    with serve(run, R2N_LABEL_APP_STATE_DELAY="3") as address, contextlib.closing(chrome()) as driver:
+        text = open_page(driver, address)
+        WebDriverWait(driver, 60).until(lambda d: text() == "round 0: query 1 of 2")
+        answer_round(driver, [Keys.ARROW_LEFT, Keys.ARROW_RIGHT], submit=False)
+        driver.execute_script("window.stale = refresh();")  # round 0 waiting, read now, received 3 s later
+        time.sleep(1)
+        driver.find_element(By.TAG_NAME, "body").send_keys(Keys.ENTER)
+        WebDriverWait(driver, 30).until(lambda d: text("message") == "round 0 saved (labels/0.json)")
+        driver.execute_async_script("window.stale.then(arguments[arguments.length - 1]);")
+        WebDriverWait(driver, 30).until(lambda d: text() == "no round is waiting for labels; this page checks every 2 s")
+        assert text("message") == "round 0 saved (labels/0.json)"
+        assert page_answers(run, 0) == [0, 1]
+
+
+@needs_chromium
 def test_label_app_clips_before_answers_and_undo_in_a_headless_browser(tmp_path):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
