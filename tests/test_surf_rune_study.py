@@ -338,8 +338,9 @@ def test_schedule_gives_two_pairs_at_one_thread_in_the_protocols_order_and_the_c
     plan = lambda: schedule_module.next_session(str(runs), str(scratch))  # noqa: E731
     # RUNE seed 5's state is on this machine: RUNE goes on, though SURF's family is further behind
     assert plan()[3:] == [power.RUNE, power.R2N_RUNE, "--seeds", "5", "6", "--threads", "1", "--workers", "2"]
-    # without it, SURF's family; half a pair in, so the grid covers the three runs that are next, not a fifth
-    assert schedule_module.next_session(str(runs))[3:] == [power.R2N_SURF, power.SURF, "--seeds", "1", "2",
+    # without it, SURF's family; half a pair in, so the grid covers the three runs that are next, not a fifth; the
+    # launcher goes seed by seed, the methods in the order named: SURF seed 2 before R2N-SURF seed 2, as planned
+    assert schedule_module.next_session(str(runs))[3:] == [power.SURF, power.R2N_SURF, "--seeds", "1", "2",
                                                             "--threads", "1", "--workers", "2"]
     assert subprocess.run([sys.executable, os.path.join(STUDY, "schedule.py"), str(runs), str(scratch)],
                           capture_output=True, text=True, check=True, timeout=120).stdout.split()[6:8] == ["5", "6"]

@@ -6,7 +6,9 @@ RUNS is the committed runs' folder, SCRATCH the worktree's `logs/scratch`, where
 keeps its `state.pt` while the machine keeps it. A session (180 minutes) first goes on with the family whose run is
 in progress there: its state lives on this machine only, and a new machine starts it over whole. Else it runs the
 family whose share of runs in is the smaller (SURF's on a tie). Every run takes one torch thread, two at a time, at
-most two pairs a plan; the watcher starts the next plan when one is in. In each family, the runs go in the preset's order (the protocol's), minus those in.
+most two pairs a plan; the watcher starts the next plan when one is in. In each family, the runs go in the preset's
+order (the protocol's), minus those in: the launcher goes seed by seed, and the methods are named in the preset's
+order, so that a seed's first arm, which a session's end may have cut off, goes before its second.
 """
 import glob
 import os
@@ -62,7 +64,8 @@ def next_session(runs: str, scratch: str = "") -> list:
     family = min(families, key=lambda f: (not started & {run.run_id for run in todo[f][0]}, share[f]))
     rest, planned = todo[family]
     chosen = first_grid(rest, {(run.method, run.seed) for run in planned if run not in rest})
-    methods = list(dict.fromkeys(run.method for run in chosen))
+    arms = {run.method for run in chosen}
+    methods = [method for method in dict.fromkeys(run.method for run in planned) if method in arms]
     seeds = list(dict.fromkeys(run.seed for run in chosen))
     return (["--preset", "surf-rune", "--methods", *methods, "--seeds", *map(str, seeds), "--threads", str(THREADS),
              "--workers", str(WORKERS)])
