@@ -639,8 +639,8 @@ def test_continue_sh_removes_a_stale_index_lock_only_when_no_git_command_runs(tm
 
 
 def test_watcher_tries_a_failed_commit_again_at_its_next_pass(tmp_path):
-    """A commit that fails (here `git commit` fails once) leaves the run pending: the watcher does not end, and its
-    next pass commits the run."""
+    """A commit that fails (here `git commit` fails once) leaves the run pending and unstaged (a later commit of the
+    checkout would take it in under its own message): the watcher does not end, and its next pass commits the run."""
     repo, work, study, env = watcher_repo(tmp_path)
     run_id = "rune_stored_noise__cheetah-run__noise0.9__budget1000__seed3"
     finished = work / "results" / "surf-rune" / "runs" / run_id
@@ -649,6 +649,7 @@ def test_watcher_tries_a_failed_commit_again_at_its_next_pass(tmp_path):
     (tmp_path / "bin").mkdir()
     (tmp_path / "bin" / "git").write_text(f"""#!/bin/sh
 if [ "$1" = commit ] && [ ! -e {tmp_path}/failed ]; then touch {tmp_path}/failed; exit 1; fi
+if [ "$1" = add ] && [ -e {tmp_path}/failed ]; then {shutil.which("git")} diff --cached --name-only > {tmp_path}/staged; fi
 exec {shutil.which("git")} "$@"
 """)
     os.chmod(tmp_path / "bin" / "git", 0o755)
@@ -658,6 +659,7 @@ exec {shutil.which("git")} "$@"
                             env=dict(env, PATH=f"{tmp_path / 'bin'}{os.pathsep}{env['PATH']}", WATCH_TRIES="1",
                                      WATCH_PAUSE="0", WATCH_PASS="1"))
     assert (tmp_path / "failed").exists()
+    assert (tmp_path / "staged").read_text() == ""  # what the index held at the next pass's `git add`
     assert f"could not commit {run_id}: tried again in a minute" in result.stdout
     assert result.stdout.index("could not commit") < result.stdout.index(f"committed {run_id}")
     assert subprocess.run(["git", "cat-file", "-e", f"HEAD:results/surf-rune/runs/{run_id}/done"], cwd=repo).returncode == 0

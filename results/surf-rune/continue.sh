@@ -74,8 +74,9 @@ watch() {  # until the launcher has stopped and every finished run is committed
                     "surf-rune: $id (commit $COMMIT, $cpu, $seconds)" -- "$STUDY/runs/$id" && break
                 sleep "${WATCH_PAUSE:-5}"
             done
-            committed "$id" || { pending=1; echo "$(date -u +%FT%TZ) could not commit $id: tried again in a minute"
-                                 continue; }
+            # unstaged, so that no later commit of this checkout takes it in under another message
+            committed "$id" || { git reset -q -- "$STUDY/runs/$id" 2> /dev/null || true; pending=1
+                                 echo "$(date -u +%FT%TZ) could not commit $id: tried again in a minute"; continue; }
             echo "$(date -u +%FT%TZ) committed $id"
             # it fired when it says so; a crash of its own stops nothing, and says so
             message=$(python "$STUDY/stop_rule.py" 2>&1) || true
